@@ -26,6 +26,9 @@ from struct import Struct
 from typing import ClassVar
 
 __all__ = [
+    "COMMAND_PORT",
+    "DATA_PORT",
+    "MULTICAST_GROUP",
     "Analog",
     "Asset",
     "AssetDef",
