@@ -1,0 +1,249 @@
+"""The simulated quadrotor: step responses, floor, landing, estimator fusion rules, battery."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from arena_common.sim_physics import (
+    Battery,
+    BatteryParams,
+    MotorMode,
+    QuadParams,
+    QuadSim,
+    Setpoint,
+    SimPhysicsError,
+    quat_from_euler,
+    quat_rotate,
+    quat_rotate_inverse,
+    quat_to_euler,
+    quat_yaw,
+)
+
+VISION_EVERY = 5  # ticks: 50 Hz of vision at the 250 Hz physics rate
+
+
+def make_sim(seed: int = 1, **kwargs: object) -> QuadSim:
+    sim = QuadSim(seed=seed, **kwargs)  # type: ignore[arg-type]
+    sim.estimator.ev_ctrl = 15
+    sim.estimator.mag_enabled = False
+    return sim
+
+
+def fly(
+    sim: QuadSim, seconds: float, vision: bool = True, latency: float = 0.0
+) -> list[tuple[float, float, float, float]]:
+    """Run the simulation, feeding perfect vision at 50 Hz; returns (t, n, e, d) samples."""
+    out = []
+    for i in range(round(seconds / sim.dt)):
+        if vision and i % VISION_EVERY == 0:
+            sim.vision_from_truth(latency)
+        sim.step()
+        out.append((sim.time, *sim.body.position))
+    return out
+
+
+def hover_at_1m(sim: QuadSim) -> None:
+    fly(sim, 0.5)
+    sim.motor_mode = MotorMode.FLY
+    sim.setpoint = Setpoint.hold((0.0, 0.0, -1.0), 0.0)
+    fly(sim, 6.0)
+
+
+def test_physics_rate_is_at_least_250_hz() -> None:
+    assert make_sim().dt <= 0.004
+    with pytest.raises(SimPhysicsError, match="250 Hz"):
+        QuadSim(dt=0.01)
+
+
+def test_takeoff_to_1m_settles_without_large_overshoot() -> None:
+    sim = make_sim()
+    fly(sim, 0.5)
+    sim.motor_mode = MotorMode.FLY
+    sim.setpoint = Setpoint.hold((0.0, 0.0, -1.0), 0.0)
+    t0 = sim.time
+    out = fly(sim, 8.0)
+    heights = [(t - t0, -d) for t, _, _, d in out]
+    peak = max(h for _, h in heights)
+    assert peak <= 1.2  # overshoot <= 20 %
+    last_outside = max((t for t, h in heights if abs(h - 1.0) > 0.05), default=0.0)
+    assert 1.0 < last_outside < 5.0  # a real climb, settled within 5 cm before 5 s
+    assert all(abs(h - 1.0) < 0.05 for t, h in heights if t > 5.0)  # and holds
+    assert not sim.landed
+
+
+def test_horizontal_step_overshoot_and_settling() -> None:
+    sim = make_sim(seed=2)
+    hover_at_1m(sim)
+    sim.setpoint = Setpoint.hold((1.0, 0.0, -1.0), 0.0)
+    t0 = sim.time
+    out = fly(sim, 8.0)
+    xs = [(t - t0, n) for t, n, _, _ in out]
+    peak = max(x for _, x in xs)
+    assert 1.0 < peak <= 1.2
+    settle = max(t for t, x in xs if abs(x - 1.0) > 0.05)
+    assert 1.5 < settle < 6.0
+    assert abs(out[-1][3] + 1.0) < 0.05  # altitude held during the move
+    roll, pitch, _ = quat_to_euler(sim.body.attitude)
+    assert abs(roll) < 0.05 and abs(pitch) < 0.05
+
+
+def test_yaw_step() -> None:
+    sim = make_sim(seed=3)
+    hover_at_1m(sim)
+    sim.setpoint = Setpoint.hold((0.0, 0.0, -1.0), math.radians(90))
+    fly(sim, 4.0)
+    assert quat_yaw(sim.body.attitude) == pytest.approx(math.radians(90), abs=0.02)
+
+
+def test_velocity_setpoint() -> None:
+    sim = make_sim(seed=4)
+    hover_at_1m(sim)
+    sim.setpoint = Setpoint(velocity=(0.5, 0.0, 0.0), yaw=0.0)
+    fly(sim, 3.0)
+    assert sim.body.velocity[0] == pytest.approx(0.5, abs=0.05)
+
+
+def test_descend_lands_at_land_speed_and_detects_landing() -> None:
+    sim = make_sim(seed=5)
+    hover_at_1m(sim)
+    sim.motor_mode = MotorMode.DESCEND
+    sim.descend_rate = 0.7
+    t0 = sim.time
+    out = fly(sim, 4.0)
+    # Mid-descent vertical speed is the land speed.
+    mid = [(t, d) for t, _, _, d in out if -0.7 < d < -0.3]
+    speed = (mid[-1][1] - mid[0][1]) / (mid[-1][0] - mid[0][0])
+    assert speed == pytest.approx(0.7, abs=0.07)
+    touchdown = next(t for t, _, _, d in out if d >= 0.0) - t0
+    assert 1.2 < touchdown < 2.2
+    assert sim.landed
+    assert sim.body.position[2] == 0.0
+
+
+def test_floor_holds_a_disarmed_vehicle_and_a_killed_one_falls_to_it() -> None:
+    sim = make_sim()
+    fly(sim, 1.0)
+    assert sim.body.position[2] == 0.0 and sim.landed
+    hover_at_1m(sim)
+    sim.motor_mode = MotorMode.OFF  # motor kill in the air
+    out = fly(sim, 2.0)
+    assert max(d for *_, d in out) == 0.0  # never below the floor
+    assert sim.body.position[2] == 0.0 and sim.body.velocity == (0.0, 0.0, 0.0)
+    assert sim.body.last_impact_speed > 3.0  # it fell from 1 m
+
+
+def test_idle_on_the_ground_does_not_lift_off() -> None:
+    sim = make_sim()
+    sim.motor_mode = MotorMode.FLY
+    sim.setpoint = Setpoint.hold((0.0, 0.0, 0.0), 0.0)  # hold on the floor: no takeoff wanted
+    fly(sim, 2.0)
+    assert sim.landed and sim.body.position[2] == 0.0
+    assert 0.0 < sim.body.thrust < 0.1 * sim.params.max_thrust  # spinning at idle
+
+
+def test_vision_rules_start_timeout_and_bits() -> None:
+    sim = QuadSim(seed=6)
+    est = sim.estimator
+    est.mag_enabled = False
+    fly(sim, 0.5)
+    assert not est.xy_valid  # EKF2_EV_CTRL 0: vision is not fused at all
+    est.ev_ctrl = 15
+    sim.step()
+    assert not sim.vision_from_truth()  # the first sample alone does not start fusion
+    for _ in range(10):
+        sim.step()
+    assert sim.vision_from_truth()  # a second one 40 ms later does
+    assert est.xy_valid and est.vision_fusing
+    fly(sim, 0.39, vision=False)
+    assert est.xy_valid
+    fly(sim, 0.02, vision=False)
+    assert not est.xy_valid and not est.vision_fusing  # 400 ms without vision: lost
+    sim.vision_from_truth()
+    fly(sim, 0.25, vision=False)
+    assert not sim.vision_from_truth()  # 250 ms apart: too slow to restart
+    sim.step()
+    assert sim.vision_from_truth()
+    est.ev_ctrl = 8  # yaw only: no position
+    fly(sim, 0.5)
+    assert not est.xy_valid and est.yaw_valid
+
+
+def test_vision_reset_jumps_estimate() -> None:
+    sim = make_sim()
+    fly(sim, 0.5)
+    sim.body.position = (2.0, 1.0, 0.0)  # the vehicle is carried elsewhere
+    sim.vision_from_truth(reset_counter=1)
+    assert sim.estimator.position[:2] == pytest.approx((2.0, 1.0), abs=1e-6)
+
+
+def test_ev_delay_compensates_latency() -> None:
+    """With vision 60 ms late, EKF2_EV_DELAY = 60 ms tracks a moving vehicle better than 0."""
+
+    def tracking_error(delay: float) -> float:
+        sim = make_sim(seed=7)
+        sim.estimator.ev_delay_s = delay
+        hover_at_1m(sim)
+        sim.setpoint = Setpoint(velocity=(1.0, 0.0, 0.0), yaw=0.0)
+        errors = []
+        for i in range(round(3.0 / sim.dt)):
+            if i % VISION_EVERY == 0:
+                # The measurement made 60 ms ago arrives now.
+                b = sim.body
+                past = (b.position[0] - 0.06 * b.velocity[0], b.position[1], b.position[2])
+                sim.estimator.fuse_vision(sim.time, sim.time, past, quat_yaw(b.attitude), None, 0)
+            sim.step()
+            if i * sim.dt > 1.5:
+                errors.append(abs(sim.estimator.position[0] - sim.body.position[0]))
+        return sum(errors) / len(errors)
+
+    compensated, ignored = tracking_error(0.06), tracking_error(0.0)
+    assert compensated < 0.01
+    assert ignored > 0.04
+
+
+def test_battery_drains_with_load_and_sags() -> None:
+    idle = Battery(BatteryParams(capacity_mah=1500))
+    hover = Battery(BatteryParams(capacity_mah=1500))
+    for _ in range(1000):
+        idle.step(0.01, 0.0, armed=False)
+        hover.step(0.01, 9.81, armed=True)
+    assert 1.0 > idle.soc > hover.soc
+    assert hover.current > 5.0 and idle.current < 1.0
+    assert hover.voltage < idle.voltage < 4 * 4.2
+    flight_minutes = 1500 / 1000 / hover.current * 60
+    assert 5.0 < flight_minutes < 15.0  # a small quad's endurance
+    with pytest.raises(SimPhysicsError):
+        Battery(soc=1.5)
+
+
+def test_low_battery_reduces_thrust_margin() -> None:
+    full, empty = make_sim(), make_sim(soc=0.1)
+    for sim in (full, empty):
+        hover_at_1m(sim)
+    # Same hover, but the emptier pack needs more throttle for it.
+    assert empty.controller.throttle_sp > full.controller.throttle_sp + 0.02
+
+
+def test_bad_parameters_raise() -> None:
+    with pytest.raises(SimPhysicsError, match="cannot lift"):
+        QuadParams(mass=3.0)
+    with pytest.raises(SimPhysicsError, match="floor"):
+        QuadSim(position=(0.0, 0.0, -1.0))
+
+
+unit_angles = st.floats(-math.pi, math.pi, allow_nan=False)
+
+
+@given(unit_angles, st.floats(-1.4, 1.4), unit_angles)
+def test_quaternion_helpers(roll: float, pitch: float, yaw: float) -> None:
+    q = quat_from_euler(roll, pitch, yaw)
+    assert sum(c * c for c in q) == pytest.approx(1.0)
+    r2, p2, y2 = quat_to_euler(q)
+    assert (r2, p2) == pytest.approx((roll, pitch), abs=1e-9)
+    assert math.remainder(y2 - yaw, 2 * math.pi) == pytest.approx(0.0, abs=1e-9)
+    v = (0.3, -1.2, 2.0)
+    assert quat_rotate_inverse(q, quat_rotate(q, v)) == pytest.approx(v)
