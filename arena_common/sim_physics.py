@@ -672,10 +672,26 @@ class Controller:
 
     POSITION_PERIOD = 0.02
 
+    HOVER_TIME_CONSTANT = 1.5  # s, hover-thrust estimator
+
     def __init__(self, params: QuadParams, gains: ControlGains) -> None:
         self.params = params
         self.gains = gains
+        self.hover_est = gains.hover_throttle
         self.reset()
+
+    def update_hover_estimate(self, dt: float, specific_force_body: Vec3) -> None:
+        """PX4's hover-thrust estimator (MPC_USE_HTE): the throttle that would just balance gravity.
+
+        The accelerometer's thrust-axis reading divided into the applied throttle gives the throttle
+        per m/s²; it drifts with battery voltage and payload, which the z integrator alone follows slowly.
+        """
+        spec = -specific_force_body[2]
+        if spec < 2.0 or self.throttle_sp <= 0.0:
+            return
+        implied = self.throttle_sp * GRAVITY / spec
+        k = min(1.0, dt / self.HOVER_TIME_CONSTANT)
+        self.hover_est = _clamp(self.hover_est + k * (implied - self.hover_est), 0.1, 0.9)
 
     def reset(self) -> None:
         """Clear integrators and held setpoints (on arming, landing or mode change to idle)."""
@@ -759,7 +775,7 @@ class Controller:
             tx, ty, tz = tx * s, ty * s, -math.cos(tilt_max)
         # Collective specific thrust so that the vertical acceleration is met.
         spec = (az - GRAVITY) / tz
-        throttle = spec * g.hover_throttle / GRAVITY
+        throttle = spec * self.hover_est / GRAVITY
         self.saturated_z = throttle >= g.thr_max or throttle <= g.thr_min
         self.throttle_sp = _clamp(throttle, g.thr_min, g.thr_max)
         # Attitude: body z (down) opposite the thrust direction, heading yaw_sp.
@@ -965,10 +981,12 @@ class QuadSim:
                     ctrl.position_control(sp, est, body.acceleration, est.yaw, t, pdt)
             thrust_cmd = ctrl.throttle_sp * max_thrust  # ESC throttle: thrust scales with the voltage
             torque_cmd = ctrl.attitude_rate_control(q_est, body.rates, dt)
+            if not landed:
+                ctrl.update_hover_estimate(dt, body.specific_force_body())
         body.step(dt, thrust_cmd, torque_cmd)
         self.battery.step(dt, body.thrust, mode is not MotorMode.OFF)
         self.land_detector.update(
-            dt, body, ctrl.throttle_sp, self.gains.hover_throttle, mode in (MotorMode.FLY, MotorMode.DESCEND)
+            dt, body, ctrl.throttle_sp, ctrl.hover_est, mode in (MotorMode.FLY, MotorMode.DESCEND)
         )
 
     def vision_from_truth(self, latency: float = 0.0, reset_counter: int = 0) -> bool:
