@@ -1,0 +1,35 @@
+# Every target creates the virtual environment it needs; nothing else is required on a fresh machine.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: setup run test lint bench soak clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/arena demo deploy/sim.toml
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check arena_common services tests examples
+	$(BIN)/ruff format --check arena_common services tests examples
+	$(BIN)/mypy
+
+bench: $(STAMP)
+	$(BIN)/arena bench
+
+soak: $(STAMP)
+	ARENA_SOAK=full $(BIN)/python -m pytest -q -m slow tests
+
+clean:
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,5 @@
+"""``python -m arena_common.cli`` runs the ``arena`` command."""
+
+from arena_common.cli import main
+
+main()

@@ -1,0 +1,433 @@
+"""The arena configuration: one TOML file describes the room, the mocap, the bus, the hosts and the vehicles.
+
+:func:`load` reads and validates a file into frozen value objects; every error names the file, the
+field and what was expected (``deploy/sim.toml: vehicles.d1.system_id: expected an integer in 1..250,
+got 0``).  ``deploy/sim.toml`` and ``deploy/lab.example.toml`` are the documented examples.
+"""
+
+from __future__ import annotations
+
+import socket
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from arena_common import keys
+from arena_common.errors import ConfigError, InvalidName
+
+SERVICES = ("router", "mocap", "transform", "recorder", "sim")
+VEHICLE_SERVICES = ("downsampler", "gateway")
+UP_AXES = ("y", "z", "enu")
+MOCAP_SOURCES = ("natnet", "motioncapture", "csv")
+ZENOH_MODES = ("peer", "client", "router")
+
+
+@dataclass(frozen=True, slots=True)
+class ArenaSpec:
+    """The flight volume and the safety limits the gateways enforce."""
+
+    name: str = "arena"
+    size: tuple[float, float, float] = (7.0, 4.0, 2.5)  # north (long side), east, height, metres
+    margin: float = 0.3
+    max_speed: float = 2.0  # m/s, horizontal setpoint limit
+    max_climb: float = 1.0  # m/s, vertical setpoint limit
+
+    def safe_box(self) -> tuple[tuple[float, float], tuple[float, float], tuple[float, float]]:
+        """(north, east, down) limits of the safe volume: the room minus the margin, origin floor centre."""
+        n, e, h = self.size
+        m = self.margin
+        return ((-n / 2 + m, n / 2 - m), (-e / 2 + m, e / 2 - m), (-(h - m), 0.0))
+
+
+@dataclass(frozen=True, slots=True)
+class CalibrationSpec:
+    """Rotation about Down then offset, from Motive's (up-axis corrected) frame to the arena NED frame."""
+
+    yaw_deg: float = 0.0
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class MocapSpec:
+    """Where poses come from."""
+
+    source: str = "natnet"
+    server: str = "127.0.0.1"
+    interface: str = "127.0.0.1"
+    multicast: bool = True
+    group: str = "239.255.42.99"
+    command_port: int = 1510
+    data_port: int = 1511
+    up_axis: str = "y"
+    publish_unknown: bool = False
+    csv_file: str = ""
+    motioncapture_type: str = "vrpn"
+
+
+@dataclass(frozen=True, slots=True)
+class ZenohSpec:
+    """How services reach each other."""
+
+    mode: str = "peer"
+    connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    listen: tuple[str, ...] = ()
+    router_listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    multicast_scouting: bool = False
+    lease_ms: int = 10000
+    batching_ms: int = 1
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class HostSpec:
+    """One computer: what it runs."""
+
+    name: str
+    services: tuple[str, ...] = ()
+    vehicles: tuple[str, ...] = ()
+    vehicle_services: tuple[str, ...] = VEHICLE_SERVICES
+    address: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class SimVehicleSpec:
+    """Settings of a simulated vehicle."""
+
+    start: tuple[float, float] = (0.0, 0.0)
+    yaw_deg: float = 0.0
+    mavlink: str = ""  # the simulated autopilot's side; derived from the gateway's string when empty
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleSpec:
+    """One vehicle: its rigid body, its MAVLink link and its pipeline settings."""
+
+    name: str
+    rigid_body: str | int
+    mavlink: str
+    system_id: int
+    vision_rate: float = 50.0
+    max_pose_age: float = 0.1
+    vision_message: str = "odometry"
+    require_setup: bool = True
+    gcs: str = ""
+    sim: SimVehicleSpec = field(default_factory=SimVehicleSpec)
+
+    def sim_mavlink(self) -> str:
+        """The connection string the simulated autopilot uses: the mirror of the gateway's."""
+        if self.sim.mavlink:
+            return self.sim.mavlink
+        return mirror_connection(self.mavlink)
+
+
+@dataclass(frozen=True, slots=True)
+class SimSpec:
+    """The simulated world: Motive emulator and simulated vehicles."""
+
+    speed: float = 1.0
+    mocap_rate: float = 180.0
+    natnet_version: str = "3.1"
+    noise_m: float = 0.0002
+    dropout: float = 0.0
+    seed: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class RecorderSpec:
+    """The telemetry recorder."""
+
+    keys: tuple[str, ...] = ("arena/**",)
+    directory: str = "recordings"
+    encoding: str = "json"
+    flush_s: float = 1.0
+    split_mb: float = 512.0
+    split_s: float = 3600.0
+    min_free_mb: float = 200.0
+    auto_on_arm: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class ArenaConfig:
+    """A whole arena, as one TOML file describes it."""
+
+    path: str
+    arena: ArenaSpec
+    calibration: CalibrationSpec
+    mocap: MocapSpec
+    zenoh: ZenohSpec
+    hosts: Mapping[str, HostSpec]
+    vehicles: Mapping[str, VehicleSpec]
+    sim: SimSpec
+    recorder: RecorderSpec
+
+    def vehicle(self, name: str) -> VehicleSpec:
+        """A vehicle by name; :class:`ConfigError` listing the known names if absent."""
+        try:
+            return self.vehicles[name]
+        except KeyError:
+            raise ConfigError(
+                f"{self.path}: no vehicle {name!r} (known: {', '.join(self.vehicles)})"
+            ) from None
+
+    def host(self, name: str | None = None) -> HostSpec:
+        """A host by name, by default this machine's hostname; the error lists the known names."""
+        name = name or socket.gethostname()
+        try:
+            return self.hosts[name]
+        except KeyError:
+            raise ConfigError(
+                f"{self.path}: host {name!r} is not in the config (known hosts: {', '.join(self.hosts)})"
+            ) from None
+
+    def body_map(self) -> dict[str | int, str]:
+        """Rigid-body name or id → vehicle name."""
+        return {v.rigid_body: v.name for v in self.vehicles.values()}
+
+    def replace(self, **changes: Any) -> ArenaConfig:
+        """A copy with some sections replaced."""
+        return replace(self, **changes)
+
+
+def mirror_connection(conn: str) -> str:
+    """The other end of a pymavlink connection string: udpin↔udpout, tcp↔tcpin."""
+    scheme, sep, rest = conn.partition(":")
+    mirror = {"udpin": "udpout", "udpout": "udpin", "udp": "udpout", "tcp": "tcpin", "tcpin": "tcp"}
+    if not sep or scheme not in mirror:
+        raise ConfigError(f"cannot derive the simulated side of MAVLink connection {conn!r}; set sim.mavlink")
+    return f"{mirror[scheme]}:{rest}"
+
+
+class _Reader:
+    """Typed access to a TOML table that names the file and dotted field in every error."""
+
+    def __init__(self, path: str, data: Mapping[str, Any], prefix: str) -> None:
+        self.path, self.data, self.prefix = path, data, prefix
+        self.used: set[str] = set()
+
+    def fail(self, key: str, expected: str, got: Any = ...) -> ConfigError:
+        where = f"{self.prefix}.{key}" if self.prefix else key
+        tail = "" if got is ... else f", got {got!r}"
+        return ConfigError(f"{self.path}: {where}: expected {expected}{tail}")
+
+    def get(self, key: str, kind: type | tuple[type, ...], default: Any, expected: str) -> Any:
+        self.used.add(key)
+        if key not in self.data:
+            return default
+        value = self.data[key]
+        if isinstance(value, bool) and kind in (int, float, (int, float)):
+            raise self.fail(key, expected, value)
+        if not isinstance(value, kind):
+            raise self.fail(key, expected, value)
+        return value
+
+    def number(self, key: str, default: float, lo: float | None = None, hi: float | None = None) -> float:
+        v = float(self.get(key, (int, float), default, "a number"))
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise self.fail(key, f"a number in {lo}..{hi}", v)
+        return v
+
+    def integer(self, key: str, default: int, lo: int | None = None, hi: int | None = None) -> int:
+        v = self.get(key, int, default, "an integer" if lo is None else f"an integer in {lo}..{hi}")
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise self.fail(key, f"an integer in {lo}..{hi}", v)
+        return int(v)
+
+    def string(self, key: str, default: str, choices: tuple[str, ...] = ()) -> str:
+        v = self.get(key, str, default, "a string" if not choices else f"one of {', '.join(choices)}")
+        if choices and v not in choices:
+            raise self.fail(key, f"one of {', '.join(choices)}", v)
+        return str(v)
+
+    def boolean(self, key: str, default: bool) -> bool:
+        return bool(self.get(key, bool, default, "true or false"))
+
+    def strings(self, key: str, default: tuple[str, ...], choices: tuple[str, ...] = ()) -> tuple[str, ...]:
+        v = self.get(key, list, list(default), "a list of strings")
+        if not all(isinstance(x, str) for x in v):
+            raise self.fail(key, "a list of strings", v)
+        for x in v:
+            if choices and x not in choices:
+                raise self.fail(key, f"names among {', '.join(choices)}", x)
+        return tuple(v)
+
+    def vector(self, key: str, default: tuple[float, ...]) -> tuple[float, ...]:
+        n = len(default)
+        v = self.get(key, list, list(default), f"a list of {n} numbers")
+        if len(v) != n or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+            raise self.fail(key, f"a list of {n} numbers", v)
+        return tuple(float(x) for x in v)
+
+    def table(self, key: str) -> _Reader:
+        v = self.get(key, dict, {}, "a table")
+        return _Reader(self.path, v, f"{self.prefix}.{key}" if self.prefix else key)
+
+    def done(self) -> None:
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            where = f"{self.prefix}." if self.prefix else ""
+            raise ConfigError(f"{self.path}: {where}{unknown[0]}: unknown field")
+
+
+def _name(r: _Reader, key: str, value: str, what: str) -> str:
+    try:
+        return keys.validate_name(value, what)
+    except InvalidName as exc:
+        raise ConfigError(f"{r.path}: {r.prefix + '.' if r.prefix else ''}{key}: {exc}") from None
+
+
+def _vehicle(r: _Reader, name: str) -> VehicleSpec:
+    body = r.get("rigid_body", (str, int), name, "a rigid-body name or integer id")
+    sim_r = r.table("sim")
+    sim = SimVehicleSpec(
+        start=sim_r.vector("start", (0.0, 0.0)),  # type: ignore[arg-type]
+        yaw_deg=sim_r.number("yaw_deg", 0.0),
+        mavlink=sim_r.string("mavlink", ""),
+    )
+    sim_r.done()
+    mav = r.get("mavlink", str, None, "a pymavlink connection string (udpin:HOST:PORT, tcp:…, /dev/ttyUSB0…)")
+    if mav is None:
+        raise r.fail("mavlink", "a pymavlink connection string (udpin:HOST:PORT, tcp:HOST:PORT, /dev/tty…)")
+    if "system_id" not in r.data:
+        raise r.fail("system_id", "an integer in 1..250 (MAV_SYS_ID; never 0)")
+    v = VehicleSpec(
+        name=name,
+        rigid_body=body,
+        mavlink=mav,
+        system_id=r.integer("system_id", 1, 1, 250),
+        vision_rate=r.number("vision_rate", 50.0, 1.0, 400.0),
+        max_pose_age=r.number("max_pose_age", 0.1, 0.001, 1.0),
+        vision_message=r.string("vision_message", "odometry", ("odometry", "vision_position_estimate")),
+        require_setup=r.boolean("require_setup", True),
+        gcs=r.string("gcs", ""),
+        sim=sim,
+    )
+    r.done()
+    return v
+
+
+def parse(data: Mapping[str, Any], path: str = "<config>") -> ArenaConfig:
+    """Validate a parsed TOML document into an :class:`ArenaConfig`."""
+    root = _Reader(path, data, "")
+
+    a = root.table("arena")
+    arena = ArenaSpec(
+        name=a.string("name", "arena"),
+        size=a.vector("size", (7.0, 4.0, 2.5)),  # type: ignore[arg-type]
+        margin=a.number("margin", 0.3, 0.0, 5.0),
+        max_speed=a.number("max_speed", 2.0, 0.0, 20.0),
+        max_climb=a.number("max_climb", 1.0, 0.0, 10.0),
+    )
+    if min(arena.size) <= 2 * arena.margin:
+        raise a.fail("size", "every dimension larger than twice the margin", list(arena.size))
+    a.done()
+
+    c = root.table("calibration")
+    calibration = CalibrationSpec(
+        yaw_deg=c.number("yaw_deg", 0.0, -360.0, 360.0),
+        offset=c.vector("offset", (0.0, 0.0, 0.0)),  # type: ignore[arg-type]
+    )
+    c.done()
+
+    m = root.table("mocap")
+    mocap = MocapSpec(
+        source=m.string("source", "natnet", MOCAP_SOURCES),
+        server=m.string("server", "127.0.0.1"),
+        interface=m.string("interface", "127.0.0.1"),
+        multicast=m.boolean("multicast", True),
+        group=m.string("group", "239.255.42.99"),
+        command_port=m.integer("command_port", 1510, 1, 65535),
+        data_port=m.integer("data_port", 1511, 1, 65535),
+        up_axis=m.string("up_axis", "y", UP_AXES),
+        publish_unknown=m.boolean("publish_unknown", False),
+        csv_file=m.string("csv_file", ""),
+        motioncapture_type=m.string("motioncapture_type", "vrpn"),
+    )
+    m.done()
+
+    z = root.table("zenoh")
+    zenoh = ZenohSpec(
+        mode=z.string("mode", "peer", ZENOH_MODES),
+        connect=z.strings("connect", ("tcp/127.0.0.1:7447",)),
+        listen=z.strings("listen", ()),
+        router_listen=z.strings("router_listen", ("tcp/127.0.0.1:7447",)),
+        multicast_scouting=z.boolean("multicast_scouting", False),
+        lease_ms=z.integer("lease_ms", 10000, 100, 600000),
+        batching_ms=z.integer("batching_ms", 1, 0, 100),
+        extra=z.get("extra", dict, {}, "a table of raw Zenoh settings (path = value)"),
+    )
+    z.done()
+
+    vs = root.table("vehicles")
+    vehicles: dict[str, VehicleSpec] = {}
+    ids: dict[int, str] = {}
+    for vname in list(vs.data):
+        _name(vs, vname, vname, "vehicle name")
+        v = _vehicle(vs.table(vname), vname)
+        if v.system_id in ids:
+            raise vs.fail(f"{vname}.system_id", f"a system id not used by {ids[v.system_id]}", v.system_id)
+        ids[v.system_id] = vname
+        vehicles[vname] = v
+    vs.done()
+
+    hs = root.table("hosts")
+    hosts: dict[str, HostSpec] = {}
+    for hname in list(hs.data):
+        _name(hs, hname, hname, "host name")
+        h = hs.table(hname)
+        host = HostSpec(
+            name=hname,
+            services=h.strings("services", (), SERVICES),
+            vehicles=h.strings("vehicles", ()),
+            vehicle_services=h.strings("vehicle_services", VEHICLE_SERVICES, VEHICLE_SERVICES),
+            address=h.string("address", ""),
+        )
+        for vname in host.vehicles:
+            if vname not in vehicles:
+                raise h.fail(
+                    "vehicles", f"names of configured vehicles ({', '.join(vehicles) or 'none'})", vname
+                )
+        h.done()
+        hosts[hname] = host
+    hs.done()
+
+    s = root.table("sim")
+    sim = SimSpec(
+        speed=s.number("speed", 1.0, 0.01, 100.0),
+        mocap_rate=s.number("mocap_rate", 180.0, 1.0, 1000.0),
+        natnet_version=s.string("natnet_version", "3.1", ("3.0", "3.1", "4.0", "4.1")),
+        noise_m=s.number("noise_m", 0.0002, 0.0, 0.1),
+        dropout=s.number("dropout", 0.0, 0.0, 1.0),
+        seed=s.integer("seed", 0),
+    )
+    s.done()
+
+    rr = root.table("recorder")
+    recorder = RecorderSpec(
+        keys=rr.strings("keys", ("arena/**",)),
+        directory=rr.string("directory", "recordings"),
+        encoding=rr.string("encoding", "json", ("json", "msgpack")),
+        flush_s=rr.number("flush_s", 1.0, 0.01, 60.0),
+        split_mb=rr.number("split_mb", 512.0, 1.0, 1e6),
+        split_s=rr.number("split_s", 3600.0, 1.0, 1e6),
+        min_free_mb=rr.number("min_free_mb", 200.0, 0.0, 1e7),
+        auto_on_arm=rr.boolean("auto_on_arm", False),
+    )
+    rr.done()
+    root.done()
+    return ArenaConfig(path, arena, calibration, mocap, zenoh, hosts, vehicles, sim, recorder)
+
+
+def load(path: str | Path) -> ArenaConfig:
+    """Read and validate a TOML config file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    return parse(data, str(p))

@@ -1,0 +1,1 @@
+"""One module per arena process: its wiring and a ``main``."""

@@ -1,0 +1,93 @@
+"""The foundation's documented examples, run as a user would: real processes over loopback."""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from arena_common import keys, wire
+from arena_common.bus import open_bus
+from arena_common.cli import app
+from arena_common.config import ZenohSpec
+from tests.conftest import REPO, free_port, wait_for
+
+runner = CliRunner()
+
+
+def test_help_and_keys() -> None:
+    assert runner.invoke(app, ["--help"]).exit_code == 0
+    out = runner.invoke(app, ["keys"]).output
+    assert "arena/<drone>/vision" in out and "arena/estop" in out
+
+
+def test_config_check_ok_and_errors(tmp_path: Path) -> None:
+    ok = runner.invoke(
+        app, ["config", "check", str(REPO / "deploy/sim.toml"), str(REPO / "deploy/lab.example.toml")]
+    )
+    assert ok.exit_code == 0, ok.output
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[vehicles.d1]\nmavlink = "udpin:127.0.0.1:1"\nsystem_id = "x"\n')
+    res = runner.invoke(app, ["config", "check", str(bad)])
+    assert res.exit_code == 2
+    assert f"{bad}: vehicles.d1.system_id: expected an integer" in res.output
+
+
+def _lines(proc: subprocess.Popen[str], q: queue.Queue[str]) -> None:
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        q.put(line)
+
+
+def test_router_and_echo_across_processes() -> None:
+    """`arena router`, then `arena echo 'arena/**' --json` prints a pose published by another process."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    env = {**os.environ, "ARENA_CONFIG": "/nonexistent"}
+    arena = [sys.executable, "-m", "arena_common.cli"]
+    router = subprocess.Popen([*arena, "router", "--listen", endpoint], env=env, stderr=subprocess.DEVNULL)
+    echo = subprocess.Popen(
+        [*arena, "echo", "arena/**", "--json", "-e", endpoint],
+        env=env,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    lines: queue.Queue[str] = queue.Queue()
+    threading.Thread(target=_lines, args=(echo, lines), daemon=True).start()
+    bus = open_bus(ZenohSpec(mode="peer", connect=(endpoint,)))
+    try:
+        pub = bus.stream_publisher(keys.pose("d1"), wire.Pose)
+        pose = wire.Pose(t=wire.now_ns(), p=(1.0, 2.0, -1.0), q=(1.0, 0.0, 0.0, 0.0), ok=True, fn=1)
+        seen: list[dict] = []
+
+        def echoed(fn: int) -> bool:
+            pub.put(pose.replace(fn=fn))
+            while not lines.empty():
+                line = lines.get()
+                if line.startswith("{"):
+                    seen.append(json.loads(line))
+            return any(s.get("payload", {}).get("fn") == fn for s in seen)
+
+        wait_for(lambda: echoed(1), timeout=15, interval=0.1, what="echo of the pose")
+        msg = next(s for s in seen if s.get("payload", {}).get("fn") == 1)
+        assert msg["key"] == "arena/d1/pose" and msg["type"] == "Pose"
+        assert msg["payload"]["p"] == [1.0, 2.0, -1.0]
+
+        pub.put_raw(b"\x92\x01\x02")  # a msgpack array, not a Pose map
+        wait_for(lambda: echoed(2), timeout=10, interval=0.1, what="echo still running after bad payload")
+        errors = [s for s in seen if "error" in s]
+        assert errors and errors[0]["key"] == "arena/d1/pose" and "expected a map" in errors[0]["error"]
+        assert echo.poll() is None
+    finally:
+        bus.close()
+        for p in (echo, router):
+            p.terminate()
+        for p in (echo, router):
+            p.wait(10)
+    assert router.returncode == 0 and echo.returncode == 0
