@@ -1,1 +1,41 @@
-"""Flying Arena: the shared library of the arena services and the user client."""
+"""Flying Arena: the shared library of the arena services and the user client.
+
+The names a user program needs are re-exported here::
+
+    from arena_common import Arena, Vehicle, CommandRejected
+"""
+
+from arena_common.client import Arena, OffboardStream, Swarm, Vehicle
+from arena_common.config import ArenaConfig
+from arena_common.config import load as load_config
+from arena_common.errors import (
+    ArenaError,
+    BusError,
+    CommandError,
+    CommandRejected,
+    CommandTimeout,
+    ConfigError,
+    InvalidName,
+    PayloadError,
+    SafetyRefused,
+    VehicleNotPresent,
+)
+
+__all__ = [
+    "Arena",
+    "ArenaConfig",
+    "ArenaError",
+    "BusError",
+    "CommandError",
+    "CommandRejected",
+    "CommandTimeout",
+    "ConfigError",
+    "InvalidName",
+    "OffboardStream",
+    "PayloadError",
+    "SafetyRefused",
+    "Swarm",
+    "Vehicle",
+    "VehicleNotPresent",
+    "load_config",
+]

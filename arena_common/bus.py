@@ -271,13 +271,15 @@ class Bus:
         ring: bool = True,
         typed: bool = True,
         keep_raw: bool = False,
+        channel: Channel[Received[Any]] | None = None,
     ) -> Subscription:
         """Subscribe; samples are decoded (``typed``) and queued in a ring (latest) or FIFO channel.
 
         Undecodable samples arrive with ``payload=None`` and ``error`` set, so the caller can count and
-        report them without losing the rest of the stream.
+        report them without losing the rest of the stream.  Pass ``channel`` to let several
+        subscriptions feed one channel (one thread then serves them all).
         """
-        ch: Channel[Received[Any]] = Channel(capacity, ring)
+        ch: Channel[Received[Any]] = channel if channel is not None else Channel(capacity, ring)
         return self._keep(Subscription(self, keyexpr, wire.decode_any if typed else None, ch, keep_raw))
 
     # -- request / response -------------------------------------------------------------------------
