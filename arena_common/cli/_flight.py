@@ -1,0 +1,314 @@
+"""Flight commands and live views: ``status``, ``top``, ``arm``…``kill`` and ``estop``."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import defaultdict
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
+
+from arena_common import keys, wire
+from arena_common.bus import Bus
+from arena_common.client import Arena, Vehicle
+from arena_common.errors import ArenaError
+from arena_common.options import ConfigOpt, ConnectOpt, ModeOpt, load_config
+
+console = Console()
+err_console = Console(stderr=True)
+
+Target = Annotated[str, typer.Argument(help="Vehicle name, or 'all' for every vehicle alive on the bus.")]
+Timeout = Annotated[float, typer.Option("--timeout", help="Seconds to wait for the vehicle.")]
+
+
+def _arena(config: Any, mode: str | None, connect: list[str] | None) -> Arena:
+    cfg = load_config(config, required=False)
+    return Arena(cfg, connect=connect or (), mode=mode, name="arena-cli")
+
+
+class Snapshot:
+    """What the bus says right now: services alive, their stats, each vehicle's state."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+        self.stats: dict[str, wire.Stats] = {}
+        self.states: dict[str, wire.State] = {}
+        self.state_time: dict[str, float] = {}
+        self._stats = bus.subscribe(keys.STATS_ALL, capacity=512, ring=True)
+        self._states = bus.subscribe("arena/*/state", capacity=512, ring=True)
+
+    def refresh(self) -> None:
+        for item in self._stats.channel.drain():
+            if isinstance(item.payload, wire.Stats):
+                self.stats[f"{item.payload.host}/{item.payload.service}"] = item.payload
+        for item in self._states.channel.drain():
+            if isinstance(item.payload, wire.State):
+                name = item.key.split("/")[1]
+                self.states[name] = item.payload
+                self.state_time[name] = time.monotonic()
+
+    def render(self) -> Table:
+        alive = self.bus.alive(keys.ALIVE_ALL, 0.5)
+        services = Table(title="services", expand=False)
+        for col in ("host", "service", "pid", "in/s", "out/s", "rejected", "cpu %", "rss MB", "up s"):
+            services.add_column(col, justify="right" if col not in ("host", "service") else "left")
+        for key in alive:
+            host, service = key.split("/")[-2:]
+            st = self.stats.get(f"{host}/{service}")
+            if st is None:
+                services.add_row(host, service, "", "", "", "", "", "", "")
+                continue
+            rej = sum(int(v) for v in st.rejected.values())
+            services.add_row(
+                host,
+                service,
+                str(st.pid),
+                f"{st.rates.get('in', 0):.0f}",
+                f"{st.rates.get('out', 0):.0f}",
+                f"[red]{rej}[/]" if rej else "0",
+                f"{st.cpu:.1f}",
+                f"{st.rss / 1e6:.0f}",
+                f"{st.up:.0f}",
+            )
+        vehicles = Table(title="vehicles")
+        for col in (
+            "vehicle",
+            "link",
+            "armed",
+            "mode",
+            "landed",
+            "north",
+            "east",
+            "down",
+            "battery",
+            "vision Hz",
+            "vision age",
+            "fused",
+            "rtt ms",
+            "failsafes",
+        ):
+            vehicles.add_column(col)
+        for name in sorted(self.states):
+            s = self.states[name]
+            age = time.monotonic() - self.state_time[name]
+            p = s.p or (math.nan, math.nan, math.nan)
+            link = "[green]ok[/]" if s.link and age < 2 else "[red]lost[/]"
+            vehicles.add_row(
+                name,
+                link,
+                "[yellow]ARMED[/]" if s.armed else "disarmed",
+                s.mode,
+                s.landed,
+                f"{p[0]:+.2f}",
+                f"{p[1]:+.2f}",
+                f"{p[2]:+.2f}",
+                "" if s.bat is None else f"{100 * s.bat:.0f} %",
+                f"{s.vis_rate:.0f}",
+                "" if s.vis_age is None else f"{1000 * s.vis_age:.0f} ms",
+                "yes" if s.vis_fused else "[red]no[/]",
+                "" if s.rtt is None else f"{1000 * s.rtt:.1f}",
+                ", ".join(s.fs),
+            )
+        grid = Table.grid()
+        grid.add_row(services)
+        grid.add_row(vehicles)
+        return grid
+
+
+def status(
+    watch: Annotated[bool, typer.Option("--watch", "-w", help="Keep the table live until Ctrl-C.")] = False,
+    wait: Annotated[float, typer.Option("--wait", help="Seconds to listen before printing.")] = 1.2,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+) -> None:
+    """Every service and vehicle alive on the bus, from any machine: host, rates, armed, mode, battery."""
+    with _arena(config, mode, connect) as arena:
+        snap = Snapshot(arena.bus)
+        time.sleep(wait)
+        snap.refresh()
+        if not watch:
+            console.print(snap.render())
+            return
+        with Live(snap.render(), console=console, refresh_per_second=2) as live:
+            try:
+                while True:
+                    time.sleep(0.5)
+                    snap.refresh()
+                    live.update(snap.render())
+            except KeyboardInterrupt:
+                pass
+
+
+def top(
+    keyexpr: Annotated[str, typer.Argument(help="Keys to watch.")] = "arena/**",
+    duration: Annotated[float, typer.Option("--duration", help="Stop after S seconds (0: Ctrl-C).")] = 0.0,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+) -> None:
+    """Rates and latencies (receive time minus measurement time) per key, live."""
+    with _arena(config, mode, connect) as arena:
+        sub = arena.bus.subscribe(keyexpr, capacity=100_000, ring=False)
+        counts: dict[str, int] = defaultdict(int)
+        lats: dict[str, list[float]] = defaultdict(list)
+        end = time.monotonic() + duration if duration > 0 else math.inf
+
+        def table(dt: float) -> Table:
+            t = Table(title=f"{keyexpr} — last {dt:.1f} s")
+            for col in ("key", "Hz", "lat p50 ms", "lat p99 ms", "lat max ms"):
+                t.add_column(col, justify="left" if col == "key" else "right")
+            for k in sorted(counts):
+                ls = sorted(lats[k])
+                fig = (
+                    [f"{1000 * ls[int(q * (len(ls) - 1))]:.2f}" for q in (0.5, 0.99, 1.0)]
+                    if ls
+                    else ["", "", ""]
+                )
+                t.add_row(k, f"{counts[k] / dt:.1f}", *fig)
+            return t
+
+        last = time.monotonic()
+        with Live(table(1.0), console=console, refresh_per_second=1) as live:
+            try:
+                while time.monotonic() < end:
+                    item = sub.get(0.1)
+                    if item is not None and item.payload is not None:
+                        counts[item.key] += 1
+                        t = getattr(item.payload, "t", 0)
+                        if t:
+                            lats[item.key].append((item.t_recv - t) / 1e9)
+                    if time.monotonic() - last >= 1.0:
+                        live.update(table(time.monotonic() - last))
+                        counts.clear()
+                        lats.clear()
+                        last = time.monotonic()
+            except KeyboardInterrupt:
+                pass
+
+
+def _targets(arena: Arena, target: str) -> list[Vehicle]:
+    names = arena.vehicles() if target == "all" else [target]
+    if not names:
+        err_console.print("[red]error:[/] no vehicle is alive on the bus")
+        raise typer.Exit(1)
+    return [arena.vehicle(n) for n in names]
+
+
+def _act(
+    target: str, config: Any, mode: str | None, connect: list[str] | None, what: str, action: Any
+) -> None:
+    with _arena(config, mode, connect) as arena:
+        vehicles = _targets(arena, target)
+        try:
+            arena.swarm(v.name for v in vehicles).run(action)
+        except ArenaError as exc:
+            err_console.print(f"[red]error:[/] {exc}")
+            raise typer.Exit(1) from None
+        console.print(f"{what}: {', '.join(v.name for v in vehicles)} [green]ok[/]")
+
+
+def arm(
+    target: Target,
+    timeout: Timeout = 5.0,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+) -> None:
+    """Arm the motors."""
+    _act(target, config, mode, connect, "armed", lambda v: v.arm(timeout))
+
+
+def disarm(
+    target: Target,
+    timeout: Timeout = 5.0,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+) -> None:
+    """Disarm the motors (refused in the air; see kill)."""
+    _act(target, config, mode, connect, "disarmed", lambda v: v.disarm(timeout))
+
+
+def takeoff(
+    target: Target,
+    height: Annotated[float, typer.Argument(help="Height above the floor [m].")] = 1.0,
+    timeout: Timeout = 20.0,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+) -> None:
+    """Take off to a height and wait until there."""
+    _act(target, config, mode, connect, f"at {height} m", lambda v: v.takeoff(height, timeout))
+
+
+def land(
+    target: Target,
+    timeout: Timeout = 30.0,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+) -> None:
+    """Land and wait until on the ground and disarmed."""
+    _act(target, config, mode, connect, "landed", lambda v: v.land(timeout))
+
+
+def hold(target: Target, config: ConfigOpt = None, mode: ModeOpt = None, connect: ConnectOpt = None) -> None:
+    """Hold position."""
+    _act(target, config, mode, connect, "holding", lambda v: v.hold())
+
+
+def goto(
+    target: Target,
+    north: float,
+    east: float,
+    down: float,
+    yaw: Annotated[float | None, typer.Option(help="Yaw [deg].")] = None,
+    tolerance: Annotated[float, typer.Option(help="Arrival tolerance [m].")] = 0.1,
+    timeout: Timeout = 30.0,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+) -> None:
+    """Fly to NORTH EAST DOWN (arena frame, metres; down is negative above the floor)."""
+    yaw_rad = math.radians(yaw) if yaw is not None else None
+    _act(
+        target,
+        config,
+        mode,
+        connect,
+        f"at ({north}, {east}, {down})",
+        lambda v: v.goto(north, east, down, yaw_rad, tolerance, timeout),
+    )
+
+
+def kill(target: Target, config: ConfigOpt = None, mode: ModeOpt = None, connect: ConnectOpt = None) -> None:
+    """Cut the motors now, in the air too."""
+    _act(target, config, mode, connect, "killed", lambda v: v.kill())
+
+
+def estop(
+    kill_motors: Annotated[bool, typer.Option("--kill", help="Cut motors instead of landing.")] = False,
+    reason: Annotated[str, typer.Option(help="Why (logged by every gateway).")] = "operator",
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+) -> None:
+    """Stop everything: every vehicle lands at once (or cuts its motors with --kill)."""
+    with _arena(config, mode, connect) as arena:
+        arena.estop(kill=kill_motors, reason=reason)
+        time.sleep(0.2)  # let the reliable publication leave before the session closes
+    console.print("[red]ESTOP[/] sent: " + ("kill motors" if kill_motors else "land every vehicle"))
+
+
+def register(app: typer.Typer) -> None:
+    """Add the flight commands to ``app``."""
+    app.command("status")(status)
+    app.command("top")(top)
+    for fn in (arm, disarm, takeoff, land, hold, goto, kill):
+        app.command(fn.__name__)(fn)
+    app.command("estop")(estop)
