@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from arena_common import Arena
+from arena_common import Arena, Vehicle
 
 
 def slots(center: tuple[float, float], radius: float, angle: float, n: int) -> list[tuple[float, float]]:
@@ -32,7 +32,11 @@ def main(arena: Arena, names: list[str], radius: float = 1.0, height: float = 1.
         targets = dict(
             zip(names, slots((0.0, 0.0), radius, step * (2 * math.pi / 3) / turns, len(names)), strict=True)
         )
-        swarm.run(lambda v, t=targets: v.goto(*t[v.name], -height, yaw=0.0, tolerance=0.15))
+
+        def fly(v: Vehicle, t: dict[str, tuple[float, float]] = targets) -> None:
+            v.goto(t[v.name][0], t[v.name][1], -height, yaw=0.0, tolerance=0.15)
+
+        swarm.run(fly)
         print(f"formation step {step}: " + ", ".join(f"{v.name} {v.position}" for v in swarm))
     swarm.land()
 
