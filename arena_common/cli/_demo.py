@@ -86,7 +86,7 @@ def demo(
     ready_timeout: Annotated[float, typer.Option(help="Seconds to wait for the arena to come up.")] = 90.0,
     config: ConfigOpt = None,
 ) -> None:
-    """Run the simulated arena from CONFIG and fly a formation demo with every vehicle, showing live status."""
+    """Run the simulated arena from CONFIG and fly a formation demo with every vehicle, live status shown."""
     path = config_path(config_file or config)
     cfg = load_config(path)
     assert cfg is not None
