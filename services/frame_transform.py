@@ -1,0 +1,191 @@
+"""Frame transform: ``arena/*/mocap`` (Motive's frame) → ``arena/<drone>/pose`` (arena NED/FRD), full rate.
+
+Every :class:`~arena_common.wire.MocapPose` is converted with one precomputed
+:class:`~arena_common.frames.FrameTransform` (``mocap.up_axis`` then the ``[calibration]`` table) and
+republished as a :class:`~arena_common.wire.Pose` on the same vehicle's ``pose`` key, with linear and
+angular velocity from a :class:`~arena_common.filters.VelocityEstimator` per vehicle. The measurement time
+``t`` and Motive's frame number ``fn`` are carried through; ``tp`` is the publish time.
+
+Bodies Motive lost (``ok`` false) are passed on with ``ok=False`` so that consumers see the loss; they
+restart the vehicle's velocity estimate and are never made valid here. Undecodable samples are counted
+under ``rejected`` in the service's stats and skipped.
+
+Samples arrive one per key, so the per-pose path uses plain float math (several times cheaper than numpy
+for a single pose); the transform itself is a small share of the per-pose cost, which is dominated by
+msgpack decoding and payload validation.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import typer
+
+from arena_common import keys, wire
+from arena_common.bus import BusOptions, Publisher
+from arena_common.config import ArenaConfig
+from arena_common.filters import VelocityEstimator
+from arena_common.frames import IDENTITY_QUAT, Calibration, FrameError, FrameTransform, UpAxis
+from arena_common.options import (
+    ConfigOpt,
+    ConnectOpt,
+    HostOpt,
+    ListenOpt,
+    LogOpt,
+    ModeOpt,
+    ZConfigOpt,
+    bus_options,
+    load_config,
+)
+from arena_common.service import running, setup_logging
+
+SERVICE = "transform"
+SUBSCRIPTION = "arena/*/mocap"
+# A mocap frame carries one sample per body: the FIFO absorbs a few frames' worth of bursts for many
+# vehicles without ever dropping the sample a downstream decimator needs.
+QUEUE_CAPACITY = 1024
+MAX_VEHICLES = 256  # bounds the per-vehicle state a misbehaving publisher could make us create
+VELOCITY_CUTOFF_HZ = 15.0
+VELOCITY_MAX_GAP_S = 0.1
+_ZERO3: wire.Vec3 = (0.0, 0.0, 0.0)
+
+
+def frame_transform(cfg: ArenaConfig) -> FrameTransform:
+    """The configured Motive → arena transform (``mocap.up_axis`` and the ``[calibration]`` table)."""
+    cal = Calibration.from_degrees(cfg.calibration.yaw_deg, cfg.calibration.offset)
+    return FrameTransform(UpAxis.parse(cfg.mocap.up_axis), cal)
+
+
+@dataclass
+class PoseConverter:
+    """MocapPose → Pose for every vehicle: the frame transform plus one velocity estimator per vehicle.
+
+    Not thread-safe: one converter is driven by one thread.
+    """
+
+    transform: FrameTransform
+    cutoff_hz: float = VELOCITY_CUTOFF_HZ
+    max_gap_s: float = VELOCITY_MAX_GAP_S
+    _velocity: dict[str, VelocityEstimator] = field(default_factory=dict, init=False, repr=False)
+
+    def estimator(self, drone: str) -> VelocityEstimator:
+        """The velocity estimator of ``drone`` (created on first use)."""
+        est = self._velocity.get(drone)
+        if est is None:
+            est = self._velocity[drone] = VelocityEstimator(self.cutoff_hz, self.max_gap_s)
+        return est
+
+    def convert(self, drone: str, m: wire.MocapPose, tp: int | None = None) -> wire.Pose:
+        """Convert one sample of ``drone``; raises :class:`~arena_common.frames.FrameError` on bad numbers.
+
+        A valid sample needs a unit quaternion (to within 1 %). An invalid one (``ok`` false) keeps its
+        converted position, and its converted attitude when the quaternion is usable (identity otherwise),
+        and restarts the velocity estimate.
+        """
+        est = self.estimator(drone)
+        tf = self.transform
+        if m.ok:
+            p, q = tf.pose(m.p, m.q)
+            vel = est.update(m.t, p, q, True)
+        else:
+            p = tf.position(m.p)
+            try:
+                q = tf.quaternion(m.q)
+            except FrameError:
+                q = IDENTITY_QUAT
+            est.reset()
+            vel = est.last
+        if vel.valid:
+            v, w, vok = vel.linear_ned, vel.angular_frd, True
+        else:  # unknown velocities travel as zeros with vok false (the wire carries no NaN here)
+            v, w, vok = _ZERO3, _ZERO3, False
+        return wire.Pose(
+            t=m.t,
+            p=p,
+            q=q,
+            ok=m.ok,
+            fn=m.fn,
+            v=v,
+            w=w,
+            vok=vok,
+            tp=wire.now_ns() if tp is None else tp,
+        )
+
+    def __len__(self) -> int:
+        return len(self._velocity)
+
+
+def main(
+    cfg: ArenaConfig,
+    options: BusOptions | None = None,
+    *,
+    host: str | None = None,
+    stop: threading.Event | None = None,
+) -> None:
+    """Transform every vehicle's mocap stream until ``stop`` is set (or SIGINT/SIGTERM)."""
+    converter = PoseConverter(frame_transform(cfg))
+    with running(SERVICE, cfg, options, host=host, stop=stop) as svc:
+        svc.log.info(
+            "Motive %s → arena NED: yaw %.3f°, offset %s",
+            converter.transform.up_axis.value,
+            cfg.calibration.yaw_deg,
+            cfg.calibration.offset,
+        )
+        sub = svc.bus.subscribe(SUBSCRIPTION, capacity=QUEUE_CAPACITY, ring=False)
+        publishers: dict[str, Publisher[wire.Pose]] = {}
+        dropped = 0
+        while not svc.stopped:
+            item = sub.get(0.2)
+            if sub.channel.dropped != dropped:  # samples the queue could not hold (we fell behind)
+                svc.stats.count("dropped", sub.channel.dropped - dropped)
+                dropped = sub.channel.dropped
+            if item is None:
+                continue
+            svc.stats.count("in")
+            if item.error is not None:
+                svc.reject("bad_payload", str(item.error))
+                continue
+            m = item.payload
+            if not isinstance(m, wire.MocapPose):
+                svc.reject("wrong_type", f"{item.key} carried {type(m).__name__}, not MocapPose")
+                continue
+            drone = item.key.split("/")[1]  # the key already passed keys.parse when it was decoded
+            pub = publishers.get(drone)
+            if pub is None:
+                if len(publishers) >= MAX_VEHICLES:
+                    svc.reject("too_many_vehicles", f"{drone}: already serving {MAX_VEHICLES} vehicles")
+                    continue
+                pub = publishers[drone] = svc.bus.stream_publisher(keys.pose(drone), wire.Pose)
+                svc.log.info("serving %s", drone)
+            try:
+                pose = converter.convert(drone, m)
+            except FrameError as exc:
+                svc.reject("bad_pose", f"{item.key}: {exc}")
+                continue
+            pub.put(pose)
+            svc.stats.count("out")
+            if not pose.ok:
+                svc.stats.count("invalid")
+            svc.stats.latency((time.time_ns() - item.t_recv) * 1e-9)
+
+
+def cli(
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+    host: HostOpt = None,
+    log_level: LogOpt = "INFO",
+) -> None:
+    """Motive poses (arena/*/mocap) → arena-frame poses with velocities (arena/<drone>/pose)."""
+    setup_logging(log_level)
+    cfg = load_config(config)
+    assert cfg is not None
+    main(cfg, bus_options(mode, connect, listen, zconfig), host=host)
+
+
+if __name__ == "__main__":
+    typer.run(cli)

@@ -1,0 +1,241 @@
+"""Frame transform service: Motive poses in, arena-frame poses out, through a real bus."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from arena_common import keys, wire
+from arena_common.bus import Bus, Subscription
+from arena_common.config import ArenaConfig, CalibrationSpec
+from arena_common.frames import quat_angle, quat_from_axis_angle, quat_from_euler
+from services import frame_transform
+from tests.conftest import REPO, wait_for, write_config
+
+T0 = 1_700_000_000_000_000_000
+DT = 5_555_556  # 180 Hz
+
+
+@contextmanager
+def service_thread(target: Callable[..., None], *args: Any, **kwargs: Any) -> Iterator[threading.Event]:
+    """Run a service's ``main`` in a thread with a stop event; stop it and re-raise its error at the end."""
+    stop = threading.Event()
+    errors: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            target(*args, stop=stop, **kwargs)
+        except BaseException as exc:
+            errors.append(exc)
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    try:
+        yield stop
+    finally:
+        stop.set()
+        th.join(15)
+    assert not th.is_alive(), "service did not stop"
+    if errors:
+        raise errors[0]
+
+
+def latest_stats(sub: Subscription, service: str) -> wire.Stats | None:
+    """The newest Stats of ``service`` waiting on ``sub``, if any."""
+    found = None
+    for item in sub.channel.drain():
+        if isinstance(item.payload, wire.Stats) and item.payload.service == service:
+            found = item.payload
+    return found
+
+
+def mocap(fn: int, p: tuple[float, float, float], q: tuple[float, ...], ok: bool = True) -> wire.MocapPose:
+    return wire.MocapPose(t=T0 + fn * DT, fn=fn, id=1, p=p, q=q, ok=ok, name="d1")  # type: ignore[arg-type]
+
+
+class Link:
+    """A publisher of one drone's mocap and a FIFO of its arena poses, once the service is reachable."""
+
+    def __init__(self, bus: Bus, drone: str = "d1") -> None:
+        self.pub = bus.stream_publisher(keys.mocap(drone), wire.MocapPose)
+        self.sub = bus.subscribe(keys.pose(drone), capacity=10_000, ring=False)
+        self.got: list[wire.Pose] = []
+
+    def poll(self) -> list[wire.Pose]:
+        self.got.extend(i.payload for i in self.sub.channel.drain() if i.payload is not None)
+        return self.got
+
+    def warm_up(self) -> None:
+        """Publish untracked samples (they reset the velocity estimate) until the service answers."""
+        warm = mocap(0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), ok=False)
+
+        def answered() -> list[wire.Pose]:
+            self.pub.put(warm)
+            return self.poll()
+
+        wait_for(answered, timeout=20, interval=0.05, what="first pose")
+        self.got.clear()
+
+    def exchange(self, samples: list[wire.MocapPose]) -> list[wire.Pose]:
+        """Publish ``samples`` and return the poses answering them (by frame number)."""
+        for s in samples:
+            self.pub.put(s)
+        want = {s.fn for s in samples}
+        wait_for(lambda: want <= {p.fn for p in self.poll()}, timeout=10, what="every pose")
+        return [p for p in self.got if p.fn in want]
+
+
+def configure(
+    cfg: ArenaConfig, up_axis: str, yaw_deg: float, offset: tuple[float, float, float]
+) -> ArenaConfig:
+    return cfg.replace(
+        mocap=dataclasses.replace(cfg.mocap, up_axis=up_axis),
+        calibration=CalibrationSpec(yaw_deg=yaw_deg, offset=offset),
+    )
+
+
+# Calibration used by the known vectors: 90° about Down ((n, e) → (−e, n)), then an offset.
+# Expected values are worked by hand from the axis conventions, not with the library.
+YAW, OFFSET = 90.0, (0.5, -0.25, 0.1)
+# (up axis, Motive position (1, 2, 3) → arena position)
+POSITIONS = {
+    "y": (-2.5, 0.75, -1.9),  # NED (1, 3, -2) → rotated (-3, 1, -2) → + offset
+    "z": (2.5, 0.75, -2.9),  # NED (1, -2, -3) → (2, 1, -3)
+    "enu": (-0.5, 1.75, -2.9),  # NED (2, 1, -3) → (-1, 2, -3)
+}
+# (up axis, rotation of the body about a Motive axis, degrees) → arena (roll, pitch, yaw) in degrees
+ATTITUDES = {
+    "y": [
+        ((0, 1, 0), 30, (0, 0, 60)),  # about up: turns left, NED yaw −30, +90 calibration
+        ((1, 0, 0), 20, (20, 0, 90)),  # about forward: right side goes down (+roll)
+        ((0, 0, 1), 20, (0, 20, 90)),  # about right (z): nose up (+pitch)
+    ],
+    "z": [
+        ((0, 0, 1), 30, (0, 0, 60)),  # about up: turns left
+        ((1, 0, 0), 20, (20, 0, 90)),  # about forward: left side up (+roll)
+        ((0, 1, 0), 20, (0, -20, 90)),  # about left (y): nose down (−pitch)
+    ],
+    "enu": [
+        ((0, 0, 1), 0, (0, 0, 180)),  # identity faces East: NED yaw 90, +90 calibration
+        ((0, 0, 1), 30, (0, 0, 150)),  # ENU yaw 30 → NED yaw 60
+        ((1, 0, 0), 20, (20, 0, 180)),  # about the FLU body's forward axis: +roll
+    ],
+}
+
+
+@pytest.mark.parametrize("up_axis", ["y", "z", "enu"])
+def test_known_vectors_through_the_service(
+    up_axis: str, arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
+) -> None:
+    cfg = configure(arena_config(), up_axis, YAW, OFFSET)
+    link = Link(bus_factory())
+    with service_thread(frame_transform.main, cfg, host="test"):
+        link.warm_up()
+        samples = [
+            mocap(10 + i, (1.0, 2.0, 3.0), quat_from_axis_angle(axis, math.radians(angle)))
+            for i, (axis, angle, _) in enumerate(ATTITUDES[up_axis])
+        ]
+        poses = link.exchange(samples)
+    for sample, (_, _, euler), pose in zip(samples, ATTITUDES[up_axis], poses, strict=True):
+        assert pose.ok and pose.fn == sample.fn and pose.t == sample.t
+        assert pose.tp >= pose.t - 10**9 and pose.rc == 0
+        assert pose.p == pytest.approx(POSITIONS[up_axis], abs=1e-9)
+        want = quat_from_euler(*(math.radians(a) for a in euler))
+        assert quat_angle(pose.q, want) < 1e-6, (pose.q, euler)
+        assert pose.q[0] >= 0.0 and math.isclose(sum(c * c for c in pose.q), 1.0, rel_tol=1e-9)
+
+
+def test_velocity_and_invalid_bodies(
+    arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
+) -> None:
+    """Y-up body moving at (1, 0.5, 0) m/s in Motive and turning about up; then it is lost, then found."""
+    cfg = configure(arena_config(), "y", YAW, OFFSET)
+    link = Link(bus_factory())
+    rate = math.radians(90.0)  # rad/s about Motive's up: turning left, so −rate about FRD down
+    with service_thread(frame_transform.main, cfg, host="test"):
+        link.warm_up()
+        moving = [
+            mocap(
+                100 + i,
+                (1.0 * i * DT * 1e-9, 0.5 * i * DT * 1e-9, 0.0),
+                quat_from_axis_angle((0, 1, 0), rate * i * DT * 1e-9),
+            )
+            for i in range(40)
+        ]
+        poses = link.exchange(moving)
+        # Lost: Motive streams the body with the bit clear and garbage numbers.
+        lost = [mocap(200 + i, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), ok=False) for i in range(3)]
+        lost_poses = link.exchange(lost)
+        found = link.exchange([mocap(300, (1.0, 2.0, 3.0), (1.0, 0.0, 0.0, 0.0))])
+    assert not poses[0].vok and poses[0].v == (0.0, 0.0, 0.0)
+    assert all(p.vok and p.ok for p in poses[1:])
+    # Motive Y-up velocity (1, 0.5, 0) → NED (1, 0, −0.5) → rotated 90° about Down → (0, 1, −0.5)
+    assert poses[-1].v == pytest.approx((0.0, 1.0, -0.5), abs=1e-6)
+    assert poses[-1].w == pytest.approx((0.0, 0.0, -rate), abs=1e-6)
+    for p in lost_poses:
+        assert not p.ok and not p.vok and p.v == (0.0, 0.0, 0.0)
+        assert p.p == pytest.approx((0.5, -0.25, 0.1))  # the converted (meaningless) position: origin
+        assert p.q == (1.0, 0.0, 0.0, 0.0)  # an unusable quaternion becomes identity, still invalid
+    assert found[0].ok and not found[0].vok  # tracking back: velocities restart from scratch
+
+
+def test_bad_payloads_are_counted_and_the_service_lives(
+    arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
+) -> None:
+    cfg = arena_config()
+    bus = bus_factory()
+    link = Link(bus)
+    stats = bus.subscribe(keys.stats("test", "transform"), capacity=100, ring=False)
+    wrong = bus.stream_publisher(keys.mocap("d1"), wire.Pose)  # a Pose on a mocap key
+    with service_thread(frame_transform.main, cfg, host="test"):
+        link.warm_up()
+        link.pub.put_raw(b"\x93\x01\x02\x03")  # msgpack, not a map
+        link.pub.put_raw(b"\xc1")  # not msgpack at all
+        link.pub.put_raw(wire.MocapPose(t=1, fn=1, id=1, p=(0, 0, 0), q=(2.0, 0, 0, 0), ok=True).encode())
+        wrong.put(wire.Pose(t=1, p=(0.0, 0.0, 0.0), q=(1.0, 0.0, 0.0, 0.0), ok=True))
+        after = link.exchange([mocap(5, (1.0, 2.0, 3.0), (1.0, 0.0, 0.0, 0.0))])
+        assert after[0].ok and after[0].p == pytest.approx((1.0, 3.0, -2.0))
+
+        def counted() -> wire.Stats | None:
+            s = latest_stats(stats, "transform")
+            return s if s and s.rejected.get("bad_payload", 0) == 3 and "wrong_type" in s.rejected else None
+
+        snap = wait_for(counted, timeout=10, interval=0.1, what="rejections in the stats")
+    assert snap.counts["in"] >= 6 and snap.counts["out"] >= 2
+    assert snap.counts["invalid"] >= 1  # the warm-up samples
+    assert snap.rejected["wrong_type"] == 1
+
+
+def test_runs_as_a_process(tmp_path: Path, router_endpoint: str, bus_factory: Callable[[], Bus]) -> None:
+    path = write_config(
+        tmp_path, router_endpoint, extra="[calibration]\nyaw_deg = -90.0\noffset = [1.0, 0, 0]"
+    )
+    link = Link(bus_factory())
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.frame_transform", "--config", str(path), "--host", "test"],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        link.warm_up()
+        pose = link.exchange([mocap(7, (1.0, 2.0, 3.0), (1.0, 0.0, 0.0, 0.0))])[0]
+        assert proc.poll() is None
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=15)
+    assert proc.returncode == 0, err.decode()
+    # Y-up (1, 2, 3) → NED (1, 3, −2) → −90° about Down: (3, −1, −2) → + (1, 0, 0)
+    assert pose.p == pytest.approx((4.0, -1.0, -2.0), abs=1e-9)
+    assert quat_angle(pose.q, quat_from_euler(0.0, 0.0, math.radians(-90.0))) < 1e-9
