@@ -10,6 +10,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[dev]'
+	-command -v npm >/dev/null && npm ci --prefix tests/js --no-audit --no-fund --loglevel=error
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -24,6 +25,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check arena_common services tests examples
 	$(BIN)/ruff format --check arena_common services tests examples
 	$(BIN)/mypy
+	$(BIN)/python -m arena_common.wiredoc --check
 
 bench: $(STAMP)
 	$(BIN)/arena bench

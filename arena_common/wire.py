@@ -167,6 +167,8 @@ def _check(spec: Spec, v: Any, key: str, schema: str) -> Any:
     if v is None:
         if spec.optional:
             return None
+        if spec.nan_ok:
+            return math.nan  # JSON has no NaN: nil stands for "unknown" where NaN is allowed
         raise PayloadError("must not be nil", key=key, type_name=schema, field=spec.wire)
     kind = spec.kind
     if kind == "int":
