@@ -80,6 +80,7 @@ class TruePose(NamedTuple):
     position: Vec3  # arena NED, m
     q: Quat  # body FRD → arena NED, (w, x, y, z)
     velocity: Vec3  # arena NED, m/s
+    rates: Vec3 = (0.0, 0.0, 0.0)  # body FRD angular velocity, rad/s
 
 
 class SimClock:
@@ -345,6 +346,8 @@ class SimAutopilot:
             self.conn.close()
             raise SimAutopilotError("pymavlink was loaded for MAVLink 1; import this module before pymavlink")
         self.connection = connection
+        #: Called with the true pose after every physics tick (in the thread that steps), if set.
+        self.on_tick: Callable[[TruePose], None] | None = None
         self._closed = False
         self._boot()
 
@@ -488,16 +491,25 @@ class SimAutopilot:
             skipped = t - sim.time - dt
             self.skipped_time_s += skipped
             sim.time += skipped
+        on_tick = self.on_tick
         while sim.time + dt <= t + 1e-9:
             if sim.time >= self._next_control:
                 self._next_control = sim.time + self.CONTROL_PERIOD
                 self._control(sim.time)
             sim.step()
-        pos, q, vel, _ = sim.true_state()
-        self._true_pose = TruePose(self._boot_ns + int(sim.time * 1e9), pos, q, vel)
+            if on_tick is not None:
+                on_tick(self._update_true_pose())
+        if on_tick is None:
+            self._update_true_pose()
         self._read_input(sim.time)
         self._send_due(sim.time)
         return max(0.0, sim.time + dt - t)
+
+    def _update_true_pose(self) -> TruePose:
+        pos, q, vel, rates = self.sim.true_state()
+        pose = TruePose(self._boot_ns + int(self.sim.time * 1e9), pos, q, vel, rates)
+        self._true_pose = pose
+        return pose
 
     def _drain_input(self) -> None:
         for _ in range(1000):
@@ -1331,11 +1343,13 @@ def run_autopilots(
     *,
     stop: threading.Event | None = None,
     duration: float | None = None,
+    after_step: Callable[[], None] | None = None,
 ) -> None:
     """Drive several autopilots (sharing one :class:`SimClock`) from this thread.
 
     Runs until ``stop`` is set or ``duration`` simulated seconds have passed (at least one of them is
-    required). Waits in ``select()`` on all sockets between steps.
+    required). Waits in ``select()`` on all sockets between steps; ``after_step`` runs after each round
+    of steps (e.g. to publish the true poses).
     """
     if not autopilots:
         raise SimAutopilotError("no autopilots to run")
@@ -1347,6 +1361,8 @@ def run_autopilots(
     end = clock.now() + duration if duration is not None else math.inf
     while not (stop is not None and stop.is_set()) and clock.now() < end:
         wait = min(ap.step() for ap in autopilots)
+        if after_step is not None:
+            after_step()
         fds = [fd for fd in (ap.fileno() for ap in autopilots) if fd is not None]
         timeout = min(clock.real_seconds(wait), 0.05)
         if timeout > 0.0002:

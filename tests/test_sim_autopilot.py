@@ -499,7 +499,7 @@ def test_messages_to_other_systems_are_ignored(make_vehicle: Callable[..., tuple
 
 
 def test_timesync_initiated_and_answered(make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]]) -> None:
-    ap, gcs = make_vehicle()
+    ap, gcs = make_vehicle(speed=1.0)  # real time, so that round trips stay well under PX4's 10 ms
     gcs.run_for(2.0)
     reqs = gcs.timesync_requests
     assert len(reqs) == pytest.approx(20, abs=4)  # 10 Hz

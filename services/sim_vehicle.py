@@ -1,0 +1,182 @@
+"""Simulated PX4 vehicles: the configured vehicles as simulated autopilots, their true poses on Zenoh.
+
+Each vehicle of the config (or each one named with ``--vehicle``) becomes a
+:class:`~arena_common.sim_autopilot.SimAutopilot` on the mirror of its gateway's MAVLink connection
+(:meth:`~arena_common.config.VehicleSpec.sim_mavlink`), starting on the floor at ``sim.start`` heading
+``sim.yaw_deg``, with system id ``system_id``. All of them run in one thread. Every physics tick (or at
+``--truth-rate``) each true pose is published as a :class:`~arena_common.wire.Pose` on
+``arena/<name>/truth`` for the Motive emulator; its time ``t`` is the simulated clock, which reads like
+the wall clock at ``--speed 1``.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Callable, Sequence
+from typing import Annotated
+
+import typer
+
+from arena_common import keys, wire
+from arena_common.bus import BusOptions, Publisher
+from arena_common.config import ArenaConfig
+from arena_common.errors import ConfigError
+from arena_common.options import (
+    ConfigOpt,
+    ConnectOpt,
+    HostOpt,
+    ListenOpt,
+    LogOpt,
+    ModeOpt,
+    ZConfigOpt,
+    bus_options,
+    load_config,
+)
+from arena_common.service import running, setup_logging
+from arena_common.sim_autopilot import SimAutopilot, SimAutopilotError, SimClock, TruePose, run_autopilots
+
+SERVICE = "sim_vehicle"
+PHYSICS_RATE = 250.0  # Hz, the simulated autopilots' physics tick
+
+
+def select_vehicles(cfg: ArenaConfig, names: Sequence[str] = ()) -> list[str]:
+    """The vehicles to simulate: those named (each must exist), else every vehicle of the config."""
+    if not names:
+        return list(cfg.vehicles)
+    return [cfg.vehicle(name).name for name in names]
+
+
+def build_autopilots(cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = ()) -> list[SimAutopilot]:
+    """One simulated autopilot per selected vehicle, sharing ``clock``; closes them all on failure."""
+    built: list[SimAutopilot] = []
+    try:
+        for index, name in enumerate(select_vehicles(cfg, names)):
+            v = cfg.vehicle(name)
+            north, east = v.sim.start
+            built.append(
+                SimAutopilot(
+                    v.sim_mavlink(),
+                    v.system_id,
+                    clock=clock,
+                    name=v.name,
+                    position=(north, east, 0.0),
+                    yaw=math.radians(v.sim.yaw_deg),
+                    seed=cfg.sim.seed + index,
+                )
+            )
+    except BaseException:
+        for ap in built:
+            ap.close()
+        raise
+    return built
+
+
+def truth_pose(pose: TruePose) -> wire.Pose:
+    """A simulated vehicle's true pose as a :class:`~arena_common.wire.Pose`."""
+    return wire.Pose(
+        t=pose.time_ns,
+        p=pose.position,
+        q=pose.q,
+        ok=True,
+        v=pose.velocity,
+        w=pose.rates,
+        vok=True,
+        tp=wire.now_ns(),
+    )
+
+
+def _truth_publisher(
+    pub: Publisher[wire.Pose], period_ns: int, count: Callable[[str], None]
+) -> Callable[[TruePose], None]:
+    """A per-tick callback publishing at most one pose per ``period_ns`` of simulated time."""
+    next_due = 0
+
+    def on_tick(pose: TruePose) -> None:
+        nonlocal next_due
+        if pose.time_ns >= next_due:
+            # Half a period of tolerance: a period equal to the physics tick publishes every tick.
+            next_due = max(next_due + period_ns, pose.time_ns + period_ns // 2)
+            pub.put(truth_pose(pose))
+            count("truth")
+
+    return on_tick
+
+
+def main(
+    cfg: ArenaConfig,
+    options: BusOptions | None = None,
+    *,
+    vehicles: Sequence[str] = (),
+    speed: float | None = None,
+    truth_rate: float = PHYSICS_RATE,
+    host: str | None = None,
+    stop: threading.Event | None = None,
+) -> None:
+    """Run the simulated vehicles until ``stop`` is set (or SIGINT/SIGTERM in the main thread).
+
+    ``speed`` overrides ``sim.speed``; ``truth_rate`` (Hz of simulated time) limits how often each
+    true pose is published (at most once per physics tick).
+    """
+    if not truth_rate > 0:
+        raise ConfigError(f"truth rate must be positive, got {truth_rate}")
+    names = select_vehicles(cfg, vehicles)  # fail on an unknown name before opening anything
+    clock = SimClock(cfg.sim.speed if speed is None else speed)
+    period_ns = int(1e9 / truth_rate)
+    with running(SERVICE, cfg, options, host=host, stop=stop) as svc:
+        autopilots = build_autopilots(cfg, clock, names)
+        try:
+            for ap in autopilots:
+                ap.on_tick = _truth_publisher(
+                    svc.bus.stream_publisher(keys.truth(ap.name), wire.Pose), period_ns, svc.stats.count
+                )
+
+            svc.log.info(
+                "simulating %s at speed %.2f",
+                ", ".join(f"{ap.name} (sysid {ap.system_id}, {ap.connection})" for ap in autopilots),
+                clock.speed,
+            )
+            run_autopilots(autopilots, stop=svc.stop)
+        finally:
+            for ap in autopilots:
+                ap.close()
+
+
+def cli(
+    vehicle: Annotated[
+        list[str] | None, typer.Option("--vehicle", "-v", help="Simulate only this vehicle (repeatable).")
+    ] = None,
+    speed: Annotated[
+        float | None, typer.Option("--speed", help="Simulated time per real time (default: sim.speed).")
+    ] = None,
+    truth_rate: Annotated[
+        float, typer.Option("--truth-rate", help="True poses published per simulated second, per vehicle.")
+    ] = PHYSICS_RATE,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+    host: HostOpt = None,
+    log_level: LogOpt = "INFO",
+) -> None:
+    """Simulated PX4 vehicles speaking MAVLink 2, with their true poses on arena/<name>/truth."""
+    cfg = load_config(config)
+    assert cfg is not None
+    setup_logging(log_level)
+    try:
+        main(
+            cfg,
+            bus_options(mode, connect, listen, zconfig),
+            vehicles=vehicle or (),
+            speed=speed,
+            truth_rate=truth_rate,
+            host=host,
+        )
+    except (ConfigError, SimAutopilotError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+if __name__ == "__main__":
+    typer.run(cli)
