@@ -132,6 +132,7 @@ class SimSpec:
     noise_m: float = 0.0002
     dropout: float = 0.0
     seed: int = 0
+    px4_params: str = "arena"  # "arena": vehicles already set up for the arena; "px4": PX4's defaults
 
 
 @dataclass(frozen=True, slots=True)
@@ -400,6 +401,7 @@ def parse(data: Mapping[str, Any], path: str = "<config>") -> ArenaConfig:
         noise_m=s.number("noise_m", 0.0002, 0.0, 0.1),
         dropout=s.number("dropout", 0.0, 0.0, 1.0),
         seed=s.integer("seed", 0),
+        px4_params=s.string("px4_params", "arena", ("arena", "px4")),
     )
     s.done()
 

@@ -18,7 +18,7 @@ from typing import Annotated
 
 import typer
 
-from arena_common import keys, wire
+from arena_common import keys, px4, wire
 from arena_common.bus import BusOptions, Publisher
 from arena_common.config import ArenaConfig
 from arena_common.errors import ConfigError
@@ -50,6 +50,10 @@ def select_vehicles(cfg: ArenaConfig, names: Sequence[str] = ()) -> list[str]:
 def build_autopilots(cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = ()) -> list[SimAutopilot]:
     """One simulated autopilot per selected vehicle, sharing ``clock``; closes them all on failure."""
     built: list[SimAutopilot] = []
+    # "arena": as a lab's vehicle after `arena px4 setup`; "px4": a fresh PX4 with its defaults.
+    preset = (
+        {k: v for k, (v, _) in px4.ARENA_REQUIRED_PARAMS.items()} if cfg.sim.px4_params == "arena" else {}
+    )
     try:
         for index, name in enumerate(select_vehicles(cfg, names)):
             v = cfg.vehicle(name)
@@ -63,6 +67,7 @@ def build_autopilots(cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = (
                     position=(north, east, 0.0),
                     yaw=math.radians(v.sim.yaw_deg),
                     seed=cfg.sim.seed + index,
+                    params=preset,
                 )
             )
     except BaseException:
