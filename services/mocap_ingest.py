@@ -1,0 +1,271 @@
+"""Mocap ingest: rigid bodies from Motive (or another source) → ``arena/<drone>/mocap``, one key per vehicle.
+
+Reads frames from the source ``mocap.source`` names (NatNet by default, see
+:mod:`arena_common.mocap_sources`), maps each rigid body to its vehicle by the name or id the config gives
+(``vehicles.<name>.rigid_body``) and publishes a :class:`~arena_common.wire.MocapPose` per body and frame,
+still in Motive's frame, with its measurement time. Untracked bodies are published with ``ok=False``;
+bodies no vehicle claims are counted and, with ``mocap.publish_unknown``, published on
+``arena/sys/bodies/<body>``. Every problem the source meets is counted in the service's stats under its
+reason; the service reconnects by itself and never stops on bad input.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import msgpack
+import typer
+
+from arena_common import keys, wire
+from arena_common.bus import BusOptions, Publisher
+from arena_common.config import ArenaConfig
+from arena_common.errors import InvalidName
+from arena_common.mocap_sources import MocapSource, open_source
+from arena_common.natnet import RigidBody
+from arena_common.natnet_client import MocapError, TimedFrame
+from arena_common.options import (
+    ConfigOpt,
+    ConnectOpt,
+    HostOpt,
+    ListenOpt,
+    LogOpt,
+    ModeOpt,
+    ZConfigOpt,
+    bus_options,
+    load_config,
+)
+from arena_common.service import Service, running, setup_logging
+
+MAX_UNKNOWN_KEYS = 256  # publishers created for unclaimed bodies, at most
+_FIELDS = ("t", "fn", "id", "p", "q", "ok", "name", "err", "lat", "mts", "tsrc", "tp")
+_WIRE = tuple(spec.wire for _, spec in wire.MocapPose._specs)
+_FAST = tuple(name for name, _ in wire.MocapPose._specs) == _FIELDS and _WIRE == _FIELDS
+_NAN = math.nan
+_BAD_KEY_CHARS = re.compile(r"[^A-Za-z0-9_.\-]")
+_PACK: Callable[[Any], bytes] = msgpack.Packer(use_bin_type=True).pack
+
+
+class _Route:
+    """Where one rigid body's poses go."""
+
+    __slots__ = ("name", "pub", "vehicle")
+
+    def __init__(self, pub: Publisher[wire.MocapPose], name: str, vehicle: str) -> None:
+        self.pub = pub
+        self.name = name
+        self.vehicle = vehicle
+
+
+_SKIP = object()  # a body nobody wants (cached until the model definitions change)
+
+
+def body_key_name(name: str, body_id: int) -> str:
+    """A key chunk for an unclaimed body: its name with unusable characters replaced, else ``id<N>``."""
+    chunk = _BAD_KEY_CHARS.sub("_", name)[:63]
+    try:
+        return keys.validate_name(chunk, "rigid-body name")
+    except InvalidName:
+        return f"id{body_id}" if body_id >= 0 else f"id_{-body_id}"
+
+
+def encode_pose(
+    t: int,
+    fn: int,
+    body: RigidBody,
+    ok: bool,
+    name: str,
+    lat: int,
+    mts: float,
+    tsrc: str,
+    tp: int,
+) -> bytes:
+    """The msgpack bytes of the :class:`~arena_common.wire.MocapPose` for ``body`` (Motive's x, y, z, w
+    quaternion becomes the wire's w, x, y, z), built without the dataclass: this runs for every body of
+    every frame. Byte for byte what ``MocapPose(...).encode()`` gives. An untracked body's pose is kept
+    when finite, else zeroed (receivers refuse non-finite numbers)."""
+    qx, qy, qz, qw = body.quat_xyzw
+    err = body.mean_error
+    p = list(body.pos)
+    q = [qw, qx, qy, qz]
+    if not ok and not all(map(math.isfinite, p + q)):
+        p, q = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]  # an untracked body's numbers may be anything
+    if err is not None and not math.isfinite(err):
+        err = None
+    values = (t, fn, body.id, p, q, ok, name, _NAN if err is None else err, lat, mts, tsrc, tp)
+    if _FAST:
+        return _PACK(dict(zip(_FIELDS, values, strict=True)))
+    kwargs: dict[str, Any] = dict(zip(_FIELDS, values, strict=True))
+    kwargs["p"], kwargs["q"] = tuple(p), tuple(q)
+    return wire.MocapPose(**kwargs).encode()
+
+
+def _valid(body: RigidBody) -> bool:
+    """A tracked body whose numbers a receiver will accept (finite, unit quaternion)."""
+    x, y, z = body.pos
+    qx, qy, qz, qw = body.quat_xyzw
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        return False
+    norm = qx * qx + qy * qy + qz * qz + qw * qw
+    return abs(norm - 1.0) < 2e-3  # |q| within 1e-3 of 1 (NaN fails too)
+
+
+class Ingest:
+    """Maps rigid bodies to vehicles and publishes their poses; one publisher per vehicle."""
+
+    def __init__(self, svc: Service, cfg: ArenaConfig) -> None:
+        self.svc = svc
+        self.publish_unknown = cfg.mocap.publish_unknown
+        self.by_id: dict[int, str] = {}
+        self.by_name: dict[str, str] = {}
+        for body, vehicle in cfg.body_map().items():
+            if isinstance(body, int):
+                self.by_id[body] = vehicle
+            else:
+                self.by_name[body] = vehicle
+        self.pubs = {v: svc.bus.stream_publisher(keys.mocap(v), wire.MocapPose) for v in cfg.vehicles}
+        self.unknown_pubs: dict[str, Publisher[wire.MocapPose]] = {}
+        self.tracked: dict[str, bool] = {}
+        self.published = 0
+        self._routes: dict[int, _Route | object] = {}
+        self._models = -1
+        self._count = svc.stats.count
+
+    def _resolve(self, body_id: int, frame: TimedFrame) -> _Route | object:
+        name = frame.names.get(body_id)
+        vehicle = self.by_id.get(body_id)
+        if vehicle is None and name is not None:
+            vehicle = self.by_name.get(name)
+        if vehicle is not None:
+            claimed = _Route(self.pubs[vehicle], name or "", vehicle)
+            self._routes[body_id] = claimed
+            return claimed
+        if name is None and frame.models == 0 and self.by_name:
+            self._count("awaiting_modeldef")
+            return _SKIP  # not cached: the names may arrive with the next frame
+        label = name if name is not None else str(body_id)
+        self.svc.log.info("rigid body %r (id %d) belongs to no vehicle", label, body_id)
+        route: _Route | object = _SKIP
+        if self.publish_unknown:
+            chunk = body_key_name(label, body_id)
+            pub = self.unknown_pubs.get(chunk)
+            if pub is None and len(self.unknown_pubs) < MAX_UNKNOWN_KEYS:
+                pub = self.unknown_pubs[chunk] = self.svc.bus.stream_publisher(
+                    keys.body(chunk), wire.MocapPose
+                )
+            if pub is not None:
+                route = _Route(pub, name or "", "")
+        self._routes[body_id] = route
+        return route
+
+    def handle(self, frame: TimedFrame) -> int:
+        """Publish every body of one frame; return how many poses went out."""
+        if frame.models != self._models:
+            self._routes.clear()
+            self._models = frame.models
+        routes = self._routes
+        tp = time.time_ns()
+        fn, t, lat, mts, tsrc = frame.frame_number, frame.t, frame.lat, frame.mts, frame.tsrc
+        out = unknown = 0
+        for body in frame.bodies:
+            route = routes.get(body.id)
+            if route is None:
+                route = self._resolve(body.id, frame)
+            if not isinstance(route, _Route):
+                unknown += 1
+                continue
+            vehicle = route.vehicle
+            if not vehicle:
+                unknown += 1
+            ok = body.tracking_valid
+            if ok and not _valid(body):
+                ok = False
+                self.svc.reject("bad_pose", f"body {body.id}: pos {body.pos}, quat {body.quat_xyzw}")
+            route.pub.put_raw(encode_pose(t, fn, body, ok, route.name, lat, mts, tsrc, tp))
+            out += 1
+            if vehicle and self.tracked.get(vehicle) is not ok:
+                if vehicle in self.tracked or not ok:
+                    self.svc.log.info("%s: tracking %s", vehicle, "regained" if ok else "lost")
+                self.tracked[vehicle] = ok
+        self._count("in")
+        if out:
+            self._count("out", out)
+        if unknown:
+            self._count("unknown", unknown)
+        self.published += out
+        self.svc.stats.latency((tp - t) / 1e9)
+        return out
+
+
+def main(
+    cfg: ArenaConfig,
+    options: BusOptions | None = None,
+    *,
+    host: str | None = None,
+    stop: threading.Event | None = None,
+    loss_timeout: float = 1.0,
+) -> None:
+    """Run until ``stop`` is set (or SIGINT/SIGTERM)."""
+    with running("mocap", cfg, options, host=host, stop=stop) as svc:
+        ingest = Ingest(svc, cfg)
+        source: MocapSource | None = None
+        backoff = 0.5
+        finished = False
+        svc.log.info("source %s (%s), %d vehicles", cfg.mocap.source, _describe(cfg), len(cfg.vehicles))
+        try:
+            while not svc.stopped:
+                if source is None:
+                    candidate = open_source(
+                        cfg, on_reject=svc.reject, on_count=svc.stats.count, loss_timeout=loss_timeout
+                    )
+                    try:
+                        candidate.open()
+                    except MocapError as exc:
+                        svc.reject("setup", str(exc))
+                        svc.sleep(backoff)
+                        backoff = min(backoff * 2, 5.0)
+                        continue
+                    source, backoff = candidate, 0.5
+                frame = source.poll(0.2)
+                if frame is not None:
+                    ingest.handle(frame)
+                elif not finished and getattr(source, "finished", False):
+                    finished = True
+                    svc.log.info("the source has no more frames")
+        finally:
+            if source is not None:
+                source.close()
+
+
+def _describe(cfg: ArenaConfig) -> str:
+    m = cfg.mocap
+    if m.source == "csv":
+        return m.csv_file
+    if m.source == "motioncapture":
+        return f"{m.motioncapture_type} at {m.server}"
+    mode = f"multicast {m.group}:{m.data_port}" if m.multicast else "unicast"
+    return f"server {m.server}:{m.command_port}, {mode}, interface {m.interface}"
+
+
+def cli(
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+    host: HostOpt = None,
+    log_level: LogOpt = "INFO",
+) -> None:
+    """Receive Motive's rigid bodies and publish each vehicle's on arena/<drone>/mocap."""
+    setup_logging(log_level)
+    cfg = load_config(config)
+    assert cfg is not None
+    main(cfg, bus_options(mode, connect, listen, zconfig), host=host)
+
+
+if __name__ == "__main__":
+    typer.run(cli)
