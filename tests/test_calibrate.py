@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -42,6 +43,12 @@ def motive_of(mark: tuple[float, float, float], up_axis: str) -> tuple[float, fl
     if up_axis == "z":  # NED = (x, -y, -z)
         return (n, -e, -d)
     raise AssertionError(up_axis)
+
+
+def printed_yaw(output: str) -> float:
+    m = re.search(r"^yaw_deg = (\S+)$", output, re.MULTILINE)
+    assert m, output
+    return float(m.group(1))
 
 
 def changed_lines(old: str, new: str) -> list[tuple[str, str]]:
@@ -124,7 +131,7 @@ def test_points_file_solves_and_writes(tmp_path: Path) -> None:
 
     res = runner.invoke(app, ["calibrate", "--points", str(points), "--config", str(cfg)])
     assert res.exit_code == 0, res.output
-    assert "yaw_deg = 30.00" in res.output and "residuals: rms 0." in res.output
+    assert printed_yaw(res.output) == pytest.approx(YAW_DEG, abs=0.01) and "residuals: rms 0." in res.output
     assert cfg.read_text(encoding="utf-8") == original  # not written without --write
 
     res = runner.invoke(app, ["calibrate", "--points", str(points), "--config", str(cfg), "--write"])
@@ -281,7 +288,7 @@ def test_marks_with_a_published_body_and_write(
     finally:
         body.close()
     out = console.text
-    assert "wrote [calibration] to" in out and "yaw_deg = 30.00" in out
+    assert "wrote [calibration] to" in out and printed_yaw(out) == pytest.approx(YAW_DEG, abs=0.01)
     new = path.read_text()
     assert new.startswith(original) and new[len(original) :].startswith("\n[calibration]\n")
     got = config_mod.load(path).calibration
@@ -318,5 +325,7 @@ def test_interactive_with_a_vehicle_body(
     finally:
         body.close()
     out = console.text
-    assert "4 marks:" in out and "yaw_deg = 30.00" in out and "offset = [1.500" in out
+    assert "4 marks:" in out and printed_yaw(out) == pytest.approx(YAW_DEG, abs=0.01)
+    m = re.search(r"^offset = \[(.*)\]$", out, re.MULTILINE)
+    assert m and [float(v) for v in m.group(1).split(",")] == pytest.approx(OFFSET, abs=1e-3)
     assert "wrote" not in out and path.read_text().count("[calibration]") == 0
