@@ -30,6 +30,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
+from fractions import Fraction
 from pathlib import Path
 
 from arena_common import natnet
@@ -118,7 +119,8 @@ class TickClock:
     """The high-resolution clock of the tick stamps: ``perf_counter_ns`` counted at ``frequency`` Hz.
 
     :meth:`align` re-bases it so that it reads ``tick`` at ``perf_ns`` and runs ``rate`` times as fast as
-    real time: replay uses it to keep the echo replies in the recorded clock's domain.
+    real time: replay uses it to keep the echo replies in the recorded clock's domain. Integer arithmetic:
+    two instants a whole number of ticks apart are stamped exactly that many ticks apart.
     """
 
     def __init__(self, frequency: int = TICK_FREQUENCY) -> None:
@@ -127,18 +129,19 @@ class TickClock:
         self.frequency = frequency
         self._origin_tick = 0
         self._origin_ns = 0
-        self._scale = frequency / 1e9
+        self._num, self._den = frequency, 1_000_000_000
 
     def align(self, tick: int, perf_ns: int, rate: float = 1.0) -> None:
         """Read ``tick`` at ``perf_ns`` (a ``time.perf_counter_ns`` value) and run at ``rate`` × real time."""
-        if not rate > 0:
+        if not rate > 0 or not math.isfinite(rate):
             raise NatNetServerError(f"clock rate must be positive, got {rate}")
+        ratio = Fraction(rate).limit_denominator(1_000_000)
         self._origin_tick, self._origin_ns = int(tick), int(perf_ns)
-        self._scale = self.frequency * rate / 1e9
+        self._num, self._den = self.frequency * ratio.numerator, 1_000_000_000 * ratio.denominator
 
     def at(self, perf_ns: int) -> int:
         """The tick count at ``perf_ns`` (never negative)."""
-        return max(0, self._origin_tick + round((perf_ns - self._origin_ns) * self._scale))
+        return max(0, self._origin_tick + (perf_ns - self._origin_ns) * self._num // self._den)
 
     def now(self) -> int:
         """The tick count now."""

@@ -12,7 +12,9 @@ same for a defined rigid body the cameras do not see.
 
 Replay (``--replay FILE``, pcap/pcapng or JSON lines): the frames are sent at their recorded timing
 (``--speed``), byte for byte when the NatNet version is the recorded one, re-encoded otherwise; the
-capture's SERVERINFO (application, clock) and MODELDEF are served. The service returns when the replay ends.
+capture's SERVERINFO (application, clock) and MODELDEF are served (JSON lines hold neither: bodies are named
+after the configured vehicle with the same id, else ``RigidBody<id>``, and the clock is estimated). The
+service returns when the replay ends.
 
 Stats (every second): ``frames`` sent, ``dropped``, ``occluded`` and ``untracked`` body-frames, ``late``
 frames skipped because the loop fell behind, ``truth`` poses received, ``clients`` connected (a level).
@@ -228,12 +230,10 @@ def main(
     if replay is not None:
         rec = load_recording(replay)
         version = version or rec.version or Version.parse(cfg.sim.natnet_version)
-        models = rec.models or ModelDefs(
-            tuple(
-                RigidBodyDef(f"RigidBody{i}", i)
-                for i in sorted({b.id for f in rec.frames for b in f.rigid_bodies})
-            )
-        )
+        # Decoded frames carry no names: a configured vehicle's body name for its id, else RigidBody<id>.
+        names = {body_id: name for _, name, body_id in rigid_bodies(cfg)}
+        ids = sorted({b.id for f in rec.frames for b in f.rigid_bodies})
+        models = rec.models or ModelDefs(tuple(RigidBodyDef(names.get(i, f"RigidBody{i}"), i) for i in ids))
         info = rec.server_info
         server = build_server(
             cfg,
