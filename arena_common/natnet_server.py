@@ -457,6 +457,10 @@ class NatNetServer:
                     self.counters.ignored += 1
                     log.debug("bad command from %s:%d: %s", addr[0], addr[1], exc)
                     reply = None
+                except Exception:  # a request handler's bug must not end the command socket
+                    self.counters.ignored += 1
+                    log.exception("command from %s:%d not handled", addr[0], addr[1])
+                    reply = None
                 if reply is not None:
                     try:
                         sock.sendto(reply, addr)
