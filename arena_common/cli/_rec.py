@@ -1,0 +1,307 @@
+"""Recordings: ``arena rec info|repair|start|stop|status``, ``arena replay|export|plot``."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+import zenoh
+
+from arena_common import keys, recording, wire
+from arena_common.bus import open_bus
+from arena_common.errors import ArenaError
+from arena_common.options import (
+    ConfigOpt,
+    ConnectOpt,
+    HostOpt,
+    ListenOpt,
+    ModeOpt,
+    ZConfigOpt,
+    bus_options,
+    load_config,
+)
+from arena_common.service import running, setup_logging
+
+rec_app = typer.Typer(help="Recordings: inspect, repair, and start/stop the recorders.", no_args_is_help=True)
+
+FileArg = Annotated[Path, typer.Argument(help="An MCAP recording.", exists=True, dir_okay=False)]
+RecorderOpt = Annotated[
+    str, typer.Option("--recorder", "-r", help="Host of the recorder to control ('*': every recorder).")
+]
+STREAM_KINDS = frozenset(
+    {"mocap", "pose", "vision", "state", "telemetry", "setpoint", "truth", "stats", "bodies"}
+)
+
+
+def _fail(exc: Exception) -> typer.Exit:
+    typer.echo(f"error: {exc}", err=True)
+    return typer.Exit(2)
+
+
+@rec_app.command("info")
+def info_cmd(files: Annotated[list[Path], typer.Argument(help="MCAP recordings.")]) -> None:
+    """Duration, channels (key, schema, encoding), counts, rates, largest gaps and drops of each file."""
+    for i, f in enumerate(files):
+        try:
+            ri = recording.info(f)
+        except (ArenaError, OSError) as exc:
+            raise _fail(exc) from None
+        if i:
+            typer.echo("")
+        typer.echo(recording.format_info(ri))
+
+
+@rec_app.command("repair")
+def repair_cmd(
+    file: FileArg,
+    output: Annotated[
+        Path | None, typer.Option("--output", "-o", help="Default: FILE.repaired.mcap.")
+    ] = None,
+    force: Annotated[bool, typer.Option("--force", help="Overwrite the output if it exists.")] = False,
+) -> None:
+    """Write a complete copy (index, summary) of everything readable in an unfinished recording."""
+    try:
+        rep = recording.repair(file, output, force=force)
+    except (ArenaError, OSError) as exc:
+        raise _fail(exc) from None
+    state = (
+        "was complete" if rep.source_complete else f"was not finalized ({rep.source_error or 'no footer'})"
+    )
+    typer.echo(f"{rep.output}: {rep.messages} messages on {rep.channels} channels ({rep.source} {state})")
+
+
+def _control(
+    op: str,
+    args: dict[str, Any],
+    target: str,
+    config: Path | None,
+    mode: str | None,
+    connect: list[str] | None,
+    listen: list[str] | None,
+    zconfig: Path | None,
+    timeout: float = 5.0,
+) -> None:
+    if target != "*":
+        keys.validate_name(target, "host name")
+    cfg = load_config(config, required=False)
+    key = f"{keys.ROOT}/sys/rec/{target}"
+    command = wire.Command(op=op, args=args, src="arena rec", timeout=timeout, t=wire.now_ns())
+    results: list[tuple[str, wire.CommandResult]] = []
+    with open_bus(cfg.zenoh if cfg else None, bus_options(mode, connect, listen, zconfig)) as bus:
+        deadline = time.monotonic() + timeout
+        # A fresh session may not know the recorders' queryables yet: ask again while nobody answered.
+        while not results and time.monotonic() < deadline:
+            replies = bus.session.get(
+                key,
+                payload=command.encode(),
+                encoding=zenoh.Encoding(command.encoding()),
+                timeout=timeout,
+                target=zenoh.QueryTarget.ALL,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            for reply in replies:
+                if reply.ok is not None:
+                    src = str(reply.ok.key_expr)
+                    try:
+                        results.append((src, wire.CommandResult.decode(reply.ok.payload.to_bytes(), src)))
+                    except ArenaError as exc:
+                        results.append((src, wire.CommandResult(False, "ERROR", f"bad reply: {exc}")))
+            if not results:
+                time.sleep(0.2)
+    if not results:
+        typer.echo(f"error: no recorder answers on {key}", err=True)
+        raise typer.Exit(1)
+    failed = False
+    for src, res in sorted(results, key=lambda r: r[0]):
+        host = src.rsplit("/", 1)[-1]
+        v = res.value
+        if op == "ping":
+            typer.echo(
+                f"{host}: {v.get('state')} {v.get('file') or '-'} — {v.get('file_messages', 0)} messages in "
+                f"this file, {v.get('messages', 0)} in all, {v.get('undecodable', 0)} undecodable, "
+                f"{v.get('dropped', 0)} dropped{'; ' + str(v.get('reason')) if v.get('reason') else ''}"
+            )
+        else:
+            typer.echo(f"{host}: {res.result} {res.reason}")
+        failed = failed or not res.ok
+    if failed:
+        raise typer.Exit(1)
+
+
+@rec_app.command("start")
+def start_cmd(
+    name: Annotated[str, typer.Argument(help="Experiment name (letters, digits, '_', '-', '.').")],
+    recorder: RecorderOpt = "*",
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+) -> None:
+    """Start a new file NAME_<host>_<time>.mcap on the recorders."""
+    try:
+        keys.validate_name(name, "experiment name")
+    except ArenaError as exc:
+        raise _fail(exc) from None
+    _control("start", {"name": name}, recorder, config, mode, connect, listen, zconfig)
+
+
+@rec_app.command("stop")
+def stop_cmd(
+    recorder: RecorderOpt = "*",
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+) -> None:
+    """Close the current file; the recorders idle until the next `rec start` (or arming)."""
+    _control("stop", {}, recorder, config, mode, connect, listen, zconfig)
+
+
+@rec_app.command("status")
+def status_cmd(
+    recorder: RecorderOpt = "*",
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+) -> None:
+    """What each recorder is doing: state, file, counters."""
+    _control("ping", {}, recorder, config, mode, connect, listen, zconfig)
+
+
+def _declare(session: zenoh.Session, key: str, encoding: str) -> zenoh.Publisher:
+    """A publisher with the QoS the key has in the arena (streams drop when congested, the rest block)."""
+    try:
+        stream = keys.parse(key).kind in STREAM_KINDS
+    except ArenaError:
+        stream = False
+    return session.declare_publisher(
+        key,
+        encoding=zenoh.Encoding(encoding or "zenoh/bytes"),
+        congestion_control=zenoh.CongestionControl.DROP if stream else zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.BEST_EFFORT if stream else zenoh.Reliability.RELIABLE,
+    )
+
+
+def replay_cmd(
+    file: FileArg,
+    speed: Annotated[float, typer.Option("--speed", help="Time factor (2: twice as fast).")] = 1.0,
+    key_exprs: Annotated[
+        list[str] | None,
+        typer.Option("--keys", "-k", help="Only keys matching (repeatable; default arena/**)."),
+    ] = None,
+    remap: Annotated[
+        list[str] | None, typer.Option("--remap", help="Rename a key prefix: FROM=TO (repeatable).")
+    ] = None,
+    loop: Annotated[bool, typer.Option("--loop", help="Start again at the end, until Ctrl-C.")] = False,
+    include_control: Annotated[
+        bool,
+        typer.Option("--all", help="Also setpoints, estop and recorder control (commands live vehicles!)."),
+    ] = False,
+    start_delay: Annotated[
+        float,
+        typer.Option("--start-delay", help="Wait up to this long for a subscriber before the first message."),
+    ] = 2.0,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+    host: HostOpt = None,
+) -> None:
+    """Publish a recording again with its original timing, bytes and encodings."""
+    try:
+        mapping = recording.parse_remap(remap or [])
+    except ArenaError as exc:
+        raise _fail(exc) from None
+    cfg = load_config(config, required=False)
+    setup_logging("WARNING")
+    stop = threading.Event()
+    with running("replay", cfg, bus_options(mode, connect, listen, zconfig), host=host, stop=stop) as svc:
+        pubs: dict[tuple[str, str], Any] = {}
+
+        def publish(key: str, data: bytes, encoding: str) -> None:
+            pub = pubs.get((key, encoding))
+            if pub is None:
+                pub = pubs[(key, encoding)] = _declare(svc.bus.session, key, encoding)
+            pub.put(data)
+            svc.stats.count("out")
+
+        try:
+            # Declare every publisher first and wait until a subscriber is known, so that the first
+            # messages are not sent before the bus has routes for them.
+            wanted = recording.key_filter(key_exprs or ["arena/**"], include_control)
+            for ch in recording.channels(file):
+                if wanted(ch.key):
+                    publish_key = recording.remap_key(ch.key, mapping)
+                    pubs[(publish_key, ch.zenoh_encoding)] = _declare(
+                        svc.bus.session, publish_key, ch.zenoh_encoding
+                    )
+            deadline = time.monotonic() + max(0.0, start_delay)
+            while time.monotonic() < deadline and not any(p.matching_status.matching for p in pubs.values()):
+                if svc.sleep(0.02):
+                    return
+            rep = recording.replay(
+                file,
+                publish,
+                speed=speed,
+                key_exprs=key_exprs or ["arena/**"],
+                remap=mapping,
+                loop=loop,
+                include_control=include_control,
+                stop=stop,
+            )
+        except (ArenaError, OSError) as exc:
+            raise _fail(exc) from None
+        finally:
+            for p in pubs.values():
+                p.undeclare()
+    typer.echo(
+        f"replayed {rep.sent} messages in {rep.passes} pass(es), skipped {rep.skipped}, "
+        f"worst lateness {rep.late_max * 1000:.1f} ms"
+    )
+
+
+def export_cmd(
+    file: FileArg,
+    fmt: Annotated[str, typer.Option("--format", "-f", help="csv or parquet.")] = "csv",
+    output: Annotated[Path, typer.Option("--output", "-o", help="Directory of the tables.")] = Path("export"),
+) -> None:
+    """One table per key, nested fields flattened (p.0, p.1, p.2…), with time columns."""
+    try:
+        written = recording.export(file, output, fmt)
+    except (ArenaError, OSError) as exc:
+        raise _fail(exc) from None
+    for p in written:
+        typer.echo(str(p))
+
+
+def plot_cmd(
+    file: FileArg,
+    output: Annotated[Path, typer.Option("--output", "-o", help="Directory of the PNG figures.")] = Path(
+        "plots"
+    ),
+) -> None:
+    """PNG figures: paths in the arena (top and side), pose vs estimate, tracking error, vision, battery."""
+    from arena_common import plots  # matplotlib is slow to import: only when plotting
+
+    try:
+        written = plots.plot_recording(file, output)
+    except (ArenaError, OSError) as exc:
+        raise _fail(exc) from None
+    for p in written:
+        typer.echo(str(p))
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``rec``, ``replay``, ``export`` and ``plot`` to ``app``."""
+    app.add_typer(rec_app, name="rec")
+    app.command("replay")(replay_cmd)
+    app.command("export")(export_cmd)
+    app.command("plot")(plot_cmd)

@@ -1,0 +1,126 @@
+"""Telemetry recorder: every sample on ``recorder.keys`` (default ``arena/**``) into MCAP files.
+
+Samples go from Zenoh's callbacks through one bounded FIFO to this loop, which writes them (see
+:mod:`arena_common.recording`); if the disk falls behind, the FIFO drops and the drops are written into
+the file.  The file is flushed and fsynced every ``recorder.flush_s``, split by ``split_mb`` /
+``split_s``, and a new one starts per experiment: ``arena rec start NAME`` / ``arena rec stop`` query
+``arena/sys/rec/<host>`` (ops ``start`` {name}, ``stop``, ``ping``), or on arming with ``auto_on_arm``.
+Recording starts at once into ``rec_<host>_<time>.mcap``.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+import zenoh
+
+from arena_common import keys
+from arena_common.bus import BusOptions, Channel, Received, Subscription
+from arena_common.config import ArenaConfig
+from arena_common.options import (
+    ConfigOpt,
+    ConnectOpt,
+    HostOpt,
+    ListenOpt,
+    LogOpt,
+    ModeOpt,
+    ZConfigOpt,
+    bus_options,
+    load_config,
+)
+from arena_common.recording import Recorder, Sample
+from arena_common.service import running, setup_logging
+
+QUEUE_CAPACITY = 50_000  # samples; ≈10 s of a busy arena
+
+
+def key_exprs(cfg: ArenaConfig) -> list[str]:
+    """The key expressions to subscribe to; adds ``arena/*/state`` when ``auto_on_arm`` needs it."""
+    exprs = list(cfg.recorder.keys)
+    if cfg.recorder.auto_on_arm and not any(
+        zenoh.KeyExpr(e).includes(zenoh.KeyExpr("arena/*/state")) for e in exprs
+    ):
+        exprs.append("arena/*/state")
+    return exprs
+
+
+def main(
+    cfg: ArenaConfig,
+    options: BusOptions | None = None,
+    *,
+    host: str | None = None,
+    stop: threading.Event | None = None,
+    directory: str | Path | None = None,
+    name: str | None = None,
+) -> None:
+    """Record until ``stop`` is set (or SIGINT/SIGTERM); ``directory`` overrides ``recorder.directory``."""
+    with running("recorder", cfg, options, host=host, stop=stop) as svc:
+        try:
+            config_text = Path(cfg.path).read_text(encoding="utf-8")
+        except OSError:
+            config_text = ""
+
+        def on_event(text: str, severity: int) -> None:
+            (svc.log.error if severity <= 3 else svc.log.warning if severity == 4 else svc.log.info)(text)
+            if severity <= 4:
+                svc.stats.count("trouble")
+
+        rec = Recorder(
+            cfg.recorder,
+            svc.host,
+            directory=directory,
+            config_path=cfg.path,
+            config_text=config_text,
+            on_event=on_event,
+        )
+        queue: Channel[Received[Any]] = Channel(QUEUE_CAPACITY, ring=False)
+        subs = [Subscription(svc.bus, expr, None, queue, keep_raw=False) for expr in key_exprs(cfg)]
+        svc.bus.serve(keys.rec_control(svc.host), rec.handle)
+        rec.start(name)
+        try:
+            while not svc.stopped:
+                item = queue.get(0.05)
+                batch = [item, *queue.drain()] if item is not None else []
+                for it in batch:
+                    if rec.write(Sample(it.key, it.raw, it.encoding, it.t_recv)) is None:
+                        svc.reject("undecodable", f"{it.key}: not a valid payload ({it.encoding})")
+                    svc.stats.count("in")
+                new = rec.note_drops(queue.dropped)
+                if new:
+                    svc.stats.count("dropped", new)
+                rec.tick()
+        finally:
+            for s in subs:
+                s.close()
+            for it in queue.drain():
+                rec.write(Sample(it.key, it.raw, it.encoding, it.t_recv))
+            rec.note_drops(queue.dropped)
+            rec.close()
+            svc.log.info("recorded %d samples into %d files", rec.messages, len(rec.files))
+
+
+def cli(
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+    host: HostOpt = None,
+    directory: Annotated[
+        Path | None, typer.Option("--dir", "-d", help="Directory of the files (default: recorder.directory).")
+    ] = None,
+    name: Annotated[str | None, typer.Option("--name", help="Name of the first file (default: rec).")] = None,
+    log_level: LogOpt = "INFO",
+) -> None:
+    """Record the bus into MCAP files (Foxglove, PlotJuggler, `arena rec info`)."""
+    setup_logging(log_level)
+    cfg = load_config(config)
+    assert cfg is not None
+    main(cfg, bus_options(mode, connect, listen, zconfig), host=host, directory=directory, name=name)
+
+
+if __name__ == "__main__":
+    typer.run(cli)
