@@ -1,0 +1,744 @@
+"""Parts of the MAVLink gateway: events, vehicle state, time sync, vision, telemetry, commands, parameters.
+
+Each class does one job and is driven by the gateway's threads (see :mod:`arena_common.gateway`):
+the link reader feeds the ``on_*`` methods with decoded messages, other threads call the rest.  All of
+them are thread-safe where they are shared.  Times: ``now`` arguments are :func:`time.monotonic`
+seconds; wire times are wall-clock ns (:func:`arena_common.wire.now_ns`), the clock the gateway also
+answers TIMESYNC with, so that vision ``time_usec`` stamps and PX4's time sync agree.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
+
+from arena_common import keys, px4, wire
+from arena_common.bus import Bus, Channel, Publisher
+from arena_common.mavlink_link import MavlinkLink
+from arena_common.service import Stats
+
+__all__ = [
+    "EventSink",
+    "MavCommander",
+    "ParamClient",
+    "SetupChecker",
+    "TelemetryPublisher",
+    "TimeSync",
+    "VehicleState",
+    "VisionSender",
+    "param_equal",
+    "yaw_of",
+]
+
+MAV_AUTOPILOT_INVALID = 8
+_LANDED = ("undefined", "on_ground", "in_air", "takeoff", "landing")
+_STATUS_FLAGS = {
+    px4.MAV_STATE_CRITICAL: "failsafe",
+    px4.MAV_STATE_EMERGENCY: "emergency",
+    px4.MAV_STATE_FLIGHT_TERMINATION: "terminated",
+}
+_BATTERY_FLAGS = {2: "battery_low", 3: "battery_critical", 4: "battery_emergency", 5: "battery_failed"}
+_PARAM_TYPE_NAMES = {
+    px4.MAV_PARAM_TYPE_UINT8: "UINT8",
+    px4.MAV_PARAM_TYPE_INT8: "INT8",
+    px4.MAV_PARAM_TYPE_UINT16: "UINT16",
+    px4.MAV_PARAM_TYPE_INT16: "INT16",
+    px4.MAV_PARAM_TYPE_UINT32: "UINT32",
+    px4.MAV_PARAM_TYPE_INT32: "INT32",
+    px4.MAV_PARAM_TYPE_REAL32: "REAL32",
+}
+#: PX4 parameters that take effect only after a reboot (of those the arena sets).
+REBOOT_REQUIRED = frozenset({"EKF2_MAG_TYPE"})
+
+
+def yaw_of(q: Sequence[float]) -> float:
+    """Yaw (rad, about Down) of a (w, x, y, z) FRD→NED quaternion."""
+    w, x, y, z = q
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def _euler(q: Sequence[float]) -> tuple[float, float, float]:
+    w, x, y, z = q
+    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
+    return roll, pitch, yaw_of(q)
+
+
+# --------------------------------------------------------------------------------------------- events
+class EventSink:
+    """Events of one vehicle: logged at once, published in order by :meth:`run` (its own thread).
+
+    Publishing is reliable (it may block when the bus is congested), so nothing time-critical ever
+    waits on it; the last 500 events stay in :attr:`recent`.
+    """
+
+    def __init__(self, publish: Callable[[wire.Event], None] | None, log: logging.Logger) -> None:
+        self._publish = publish
+        self._log = log
+        self._channel: Channel[wire.Event] = Channel(4096, ring=False)
+        self.recent: collections.deque[wire.Event] = collections.deque(maxlen=500)
+        self._limits: dict[str, float] = {}
+
+    def emit(
+        self, kind: str, text: str, sev: int = 6, *, every: float = 0.0, **data: Any
+    ) -> wire.Event | None:
+        """Record one event; with ``every`` > 0, at most one per ``every`` s for the same kind and text."""
+        if every > 0:
+            now = time.monotonic()
+            key = f"{kind}:{text}"
+            if now < self._limits.get(key, -math.inf):
+                return None
+            self._limits[key] = now + every
+        event = wire.Event(t=wire.now_ns(), kind=kind, text=text[:4096], sev=max(0, min(7, sev)), data=data)
+        level = logging.ERROR if sev <= 3 else logging.WARNING if sev == 4 else logging.INFO
+        self._log.log(level, "%s: %s", kind, text)
+        self.recent.append(event)
+        self._channel.put(event)
+        return event
+
+    def run(self, stop: threading.Event) -> None:
+        """Publish queued events until ``stop`` (then flush what is left)."""
+        while not stop.is_set() or len(self._channel):
+            event = self._channel.get(0.2)
+            if event is not None and self._publish is not None:
+                try:
+                    self._publish(event)
+                except Exception as exc:  # the bus is closing; events are also in the log
+                    self._log.debug("event not published: %s", exc)
+
+    def close(self) -> None:
+        self._channel.close()
+
+
+# ---------------------------------------------------------------------------------------- vehicle
+class VehicleState:
+    """What the autopilot reports, kept up to date from its messages (reader thread) and read by others."""
+
+    def __init__(self, system_id: int, events: EventSink, link_timeout: float = 3.0) -> None:
+        self.system_id = system_id
+        self.events = events
+        self.link_timeout = link_timeout
+        self.cond = threading.Condition()
+        self.hb_time: float | None = None
+        self.hb_count = 0
+        self.link = False
+        self.armed = False
+        self.mode = "UNKNOWN"
+        self.system_status = 0
+        self.landed = "undefined"
+        self.p: tuple[float, float, float] | None = None
+        self.v: tuple[float, float, float] | None = None
+        self.p_time = -math.inf
+        self.q: tuple[float, float, float, float] | None = None
+        self.bat: float | None = None
+        self.volt: float | None = None
+        self.battery_flag = ""
+        self.boot_ms = -1
+        self.reboots = 0
+        self.on_mode_change: list[Callable[[str, str], None]] = []
+        self.on_reboot: list[Callable[[], None]] = []
+        self.on_link_change: list[Callable[[bool], None]] = []
+        self._text_parts: dict[int, tuple[float, int, list[str]]] = {}
+
+    # -- input from the reader thread -----------------------------------------------------------------
+    def on_heartbeat(self, msg: Any, now: float) -> None:
+        if msg.autopilot == MAV_AUTOPILOT_INVALID:
+            return  # a ground station or companion using the vehicle's system id, not the autopilot
+        armed = bool(msg.base_mode & px4.MAV_MODE_FLAG_SAFETY_ARMED)
+        if msg.base_mode & px4.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            mode = px4.mode_name(*px4.decode_custom_mode(msg.custom_mode))
+        else:
+            mode = "UNKNOWN"
+        status = int(msg.system_status)
+        with self.cond:
+            old_mode, old_armed, old_status, had_link = self.mode, self.armed, self.system_status, self.link
+            self.hb_time = now
+            self.hb_count += 1
+            self.link = True
+            self.armed, self.mode, self.system_status = armed, mode, status
+            self.cond.notify_all()
+        if not had_link:
+            self.events.emit("link", f"heartbeat from system {self.system_id}: link up ({mode})", 5)
+            for cb in self.on_link_change:
+                cb(True)
+        if mode != old_mode:
+            self.events.emit("mode", f"mode {old_mode} → {mode}", 5, old=old_mode, mode=mode)
+            for cb2 in self.on_mode_change:
+                cb2(old_mode, mode)
+        if armed != old_armed:
+            self.events.emit("armed", "armed" if armed else "disarmed", 5, armed=armed)
+        flag, old_flag = _STATUS_FLAGS.get(status), _STATUS_FLAGS.get(old_status)
+        if flag != old_flag:
+            if flag:
+                self.events.emit(
+                    "failsafe", f"autopilot reports {flag} (MAV_STATE {status})", 2, state=status
+                )
+            elif old_flag:
+                self.events.emit("failsafe", f"autopilot {old_flag} cleared", 5, state=status)
+
+    def on_ext_sys_state(self, msg: Any, now: float) -> None:
+        ls = int(msg.landed_state)
+        self.landed = _LANDED[ls] if 0 <= ls < len(_LANDED) else "undefined"
+
+    def on_local_position(self, msg: Any, now: float) -> None:
+        with self.cond:
+            self.p = (float(msg.x), float(msg.y), float(msg.z))
+            self.v = (float(msg.vx), float(msg.vy), float(msg.vz))
+            self.p_time = now
+            self.cond.notify_all()
+        self._boot_time(int(msg.time_boot_ms))
+
+    def on_attitude(self, msg: Any, now: float) -> None:
+        q = (float(msg.q1), float(msg.q2), float(msg.q3), float(msg.q4))
+        n = math.sqrt(sum(c * c for c in q))
+        if n > 0.5 and math.isfinite(n):
+            self.q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+        self._boot_time(int(msg.time_boot_ms))
+
+    def _boot_time(self, boot_ms: int) -> None:
+        if self.boot_ms >= 0 and boot_ms + 1000 < self.boot_ms:
+            self.reboots += 1
+            self.events.emit("info", "the autopilot rebooted (its clock went back)", 5, boot_ms=boot_ms)
+            for cb in self.on_reboot:
+                cb()
+        self.boot_ms = boot_ms
+
+    def on_sys_status(self, msg: Any, now: float) -> None:
+        if msg.voltage_battery not in (0xFFFF, 0):
+            self.volt = msg.voltage_battery / 1000.0
+        if 0 <= msg.battery_remaining <= 100:
+            self.bat = msg.battery_remaining / 100.0
+
+    def on_battery(self, msg: Any, now: float) -> None:
+        if 0 <= msg.battery_remaining <= 100:
+            self.bat = msg.battery_remaining / 100.0
+        flag = _BATTERY_FLAGS.get(int(getattr(msg, "charge_state", 0)), "")
+        if flag != self.battery_flag:
+            self.battery_flag = flag
+            if flag:
+                self.events.emit(
+                    "failsafe", f"battery: {flag.replace('_', ' ')}", 4 if flag == "battery_low" else 2
+                )
+
+    def on_statustext(self, msg: Any, now: float) -> None:
+        text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("ascii", "replace")
+        text = text.split("\0", 1)[0]
+        chunk_id = int(getattr(msg, "id", 0))
+        if chunk_id:
+            # Long texts arrive in chunks of 50 characters with the same id; the last one is shorter.
+            for old in [k for k, (t0, _, _) in self._text_parts.items() if now - t0 > 2.0]:
+                del self._text_parts[old]
+            _, _, parts = self._text_parts.setdefault(chunk_id, (now, int(msg.severity), []))
+            parts.append(text)
+            if len(text) >= 50:
+                return
+            text = "".join(parts)
+            del self._text_parts[chunk_id]
+        sev = int(msg.severity)
+        kind = "failsafe" if "failsafe" in text.lower() else "statustext"
+        self.events.emit(kind, text, sev)
+
+    # -- queries ---------------------------------------------------------------------------------------
+    def hb_age(self, now: float) -> float | None:
+        return None if self.hb_time is None else now - self.hb_time
+
+    def supervise(self, now: float) -> None:
+        """Declare the link lost after ``link_timeout`` s without a heartbeat (the supervisor calls it)."""
+        age = self.hb_age(now)
+        if self.link and age is not None and age > self.link_timeout:
+            with self.cond:
+                self.link = False
+                self.cond.notify_all()
+            self.events.emit("link", f"no heartbeat for {age:.1f} s: link lost", 2, age=age)
+            for cb in self.on_link_change:
+                cb(False)
+
+    def position(self, now: float, max_age: float = 0.5) -> tuple[float, float, float] | None:
+        """The autopilot's position estimate if it is fresh."""
+        return self.p if now - self.p_time <= max_age else None
+
+    def yaw(self) -> float | None:
+        return yaw_of(self.q) if self.q is not None else None
+
+    def wait(self, predicate: Callable[[], bool], deadline: float) -> bool:
+        """Wait until ``predicate()`` (checked on every heartbeat or position) or the monotonic deadline."""
+        with self.cond:
+            while not predicate():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self.cond.wait(min(left, 0.1))
+            return True
+
+    def flags(self, now: float) -> list[str]:
+        """Failsafe and warning flags for :class:`~arena_common.wire.State`."""
+        out = []
+        if not self.link:
+            out.append("link_lost")
+        flag = _STATUS_FLAGS.get(self.system_status)
+        if flag:
+            out.append(flag)
+        if self.battery_flag:
+            out.append(self.battery_flag)
+        return out
+
+
+# -------------------------------------------------------------------------------------------- time
+class TimeSync:
+    """Answers the autopilot's TIMESYNC requests at once, and measures round trip and offset with our own.
+
+    Our clock is ``clock_ns`` (wall-clock ns by default): the same clock stamps vision ``time_usec``.
+    The offset is the autopilot's clock minus ours, from the fastest of the last 16 round trips.
+    """
+
+    def __init__(self, link: MavlinkLink, clock_ns: Callable[[], int] = time.time_ns) -> None:
+        self.link = link
+        self.clock_ns = clock_ns
+        self._pending: collections.OrderedDict[int, None] = collections.OrderedDict()
+        self._samples: collections.deque[tuple[int, int]] = collections.deque(maxlen=16)
+        self.answered = 0
+        self.rtt_s: float | None = None
+        self.offset_s: float | None = None
+        self.rtt_min_s: float | None = None
+
+    def on_timesync(self, msg: Any, now: float) -> None:
+        if msg.tc1 == 0:
+            self.link.send(self.link.mav.timesync_encode(self.clock_ns(), msg.ts1))
+            self.answered += 1
+            return
+        if msg.ts1 not in self._pending:
+            return  # an answer to someone else (a GCS through the forwarder)
+        del self._pending[msg.ts1]
+        t_now = self.clock_ns()
+        rtt = t_now - msg.ts1
+        if rtt < 0:
+            return
+        self._samples.append((rtt, msg.tc1 - (msg.ts1 + t_now) // 2))
+        best = min(self._samples)
+        self.rtt_s = rtt * 1e-9
+        self.rtt_min_s = best[0] * 1e-9
+        self.offset_s = best[1] * 1e-9
+
+    def request(self) -> None:
+        """Send one TIMESYNC request (tc1 = 0, ts1 = our clock)."""
+        ts = self.clock_ns()
+        self._pending[ts] = None
+        while len(self._pending) > 8:
+            self._pending.popitem(last=False)
+        self.link.send(self.link.mav.timesync_encode(0, ts))
+
+    def reset(self) -> None:
+        """Forget the measurements (the autopilot rebooted: its clock restarted)."""
+        self._samples.clear()
+        self.offset_s = None
+
+
+# ------------------------------------------------------------------------------------------ vision
+class VisionSender:
+    """Sends each fresh, valid pose once as ODOMETRY (or VISION_POSITION_ESTIMATE); never resends.
+
+    A pose is dropped when it is not tracked (``ok`` false), older than ``max_pose_age`` s by its own
+    ``t``, or not newer than the last one sent.  The reset counter is bumped when the pose's ``rc``
+    changes, when the position jumps (more than ``jump_m`` and faster than ``jump_speed``), or on
+    :meth:`bump_reset` (a calibration change).
+    """
+
+    def __init__(
+        self,
+        link: MavlinkLink,
+        *,
+        max_pose_age: float = 0.1,
+        message: str = "odometry",
+        send_velocity: bool = True,
+        jump_m: float = 0.5,
+        jump_speed: float = 5.0,
+        stats: Stats | None = None,
+    ) -> None:
+        if message not in ("odometry", "vision_position_estimate"):
+            raise ValueError(f"vision message must be odometry or vision_position_estimate, not {message!r}")
+        self.link = link
+        self.max_age_ns = int(max_pose_age * 1e9)
+        self.message = message
+        self.send_velocity = send_velocity
+        self.jump_m = jump_m
+        self.jump_speed = jump_speed
+        self.stats = stats or Stats()
+        self.reset_counter = 0
+        self.sent = 0
+        self.last_t = -1
+        self.last_p: tuple[float, float, float] | None = None
+        self.last_sent_mono = -math.inf
+        self._last_rc: int | None = None
+        self._times: collections.deque[float] = collections.deque(maxlen=1024)
+
+    def bump_reset(self) -> None:
+        """Tell the autopilot the next pose jumps (new calibration, re-acquired body)."""
+        self.reset_counter = (self.reset_counter + 1) & 0xFF
+
+    def offer(self, pose: wire.Pose, now_ns: int | None = None) -> str | None:
+        """Send ``pose`` if it may be sent; the reason it was not, else None."""
+        if not pose.ok:
+            return "not tracked"
+        now_ns = wire.now_ns() if now_ns is None else now_ns
+        if now_ns - pose.t > self.max_age_ns:
+            return "stale"
+        if pose.t <= self.last_t:
+            return "not newer than the last pose sent"
+        p = pose.p
+        if self._last_rc is not None and pose.rc != self._last_rc:
+            self.bump_reset()
+        elif self.last_p is not None:
+            dt = (pose.t - self.last_t) * 1e-9
+            dist = math.dist(p, self.last_p)
+            if dist > self.jump_m and dist > self.jump_speed * dt:
+                self.bump_reset()
+        self._last_rc = pose.rc
+        usec = pose.t // 1000
+        mav = self.link.mav
+        if self.message == "odometry":
+            args = px4.odometry_args(
+                usec,
+                p,
+                pose.q,
+                pose.v if pose.vok and self.send_velocity else None,
+                reset_counter=self.reset_counter,
+                angular_velocity_frd=pose.w if pose.vok and self.send_velocity else None,
+            )
+            msg = mav.odometry_encode(**args)
+        else:
+            roll, pitch, yaw = _euler(pose.q)
+            cov = [math.nan] + [0.0] * 20
+            msg = mav.vision_position_estimate_encode(
+                usec, p[0], p[1], p[2], roll, pitch, yaw, cov, self.reset_counter
+            )
+        if not self.link.send(msg):
+            return "link down"
+        self.last_t = pose.t
+        self.last_p = p
+        self.sent += 1
+        mono = time.monotonic()
+        self.last_sent_mono = mono
+        self._times.append(mono)
+        self.stats.count("vision")
+        return None
+
+    def rate(self, now: float) -> float:
+        """Poses sent over the last second."""
+        times = self._times
+        while times and now - times[0] > 1.0:
+            times.popleft()
+        return float(len(times))
+
+    def age(self, now: float) -> float | None:
+        """Seconds since the last pose was sent (None before the first)."""
+        return None if self.sent == 0 else now - self.last_sent_mono
+
+
+# --------------------------------------------------------------------------------------- telemetry
+def _plain(value: Any) -> Any:
+    if isinstance(value, (bytes, bytearray)):
+        return list(value)
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    return value
+
+
+class TelemetryPublisher:
+    """Publishes raw messages on ``arena/<drone>/telemetry/<MSG>``, at most ``rate`` Hz per message type.
+
+    :meth:`due` is asked before decoding, so a message type that is not due costs nothing.
+    """
+
+    def __init__(self, bus: Bus | None, drone: str, rate: float = 10.0, exclude: Iterable[int] = ()) -> None:
+        self.bus = bus
+        self.drone = drone
+        self.period = 1.0 / rate if rate > 0 else math.inf
+        self.exclude = frozenset(exclude)
+        self._next: dict[int, float] = {}
+        self._pubs: dict[str, Publisher[wire.Telemetry]] = {}
+        self.published = 0
+
+    def due(self, msgid: int, now: float) -> bool:
+        return self.bus is not None and now >= self._next.get(msgid, 0.0) and msgid not in self.exclude
+
+    def publish(self, msg: Any, now: float, t_ns: int) -> None:
+        """Publish one decoded message (the caller checked :meth:`due`)."""
+        self._next[msg.get_msgId()] = now + self.period
+        self.put(
+            msg.get_type(), {k: _plain(v) for k, v in msg.to_dict().items() if k != "mavpackettype"}, t_ns
+        )
+
+    def put(self, name: str, fields: Mapping[str, Any], t_ns: int) -> None:
+        """Publish fields under a message name (also used for the gateway's own measurements)."""
+        if self.bus is None:
+            return
+        pub = self._pubs.get(name)
+        if pub is None:
+            pub = self._pubs[name] = self.bus.stream_publisher(
+                keys.telemetry(self.drone, name), wire.Telemetry
+            )
+        pub.put(wire.Telemetry(t=t_ns, msg=name, f=dict(fields)))
+        self.published += 1
+
+
+# ---------------------------------------------------------------------------------------- commands
+class MavCommander:
+    """COMMAND_LONG with retries: one outstanding exchange per command id, matched to its COMMAND_ACK.
+
+    Each attempt waits ``ack_timeout`` s; unanswered attempts are resent with confirmation + 1, up to
+    ``attempts``; IN_PROGRESS extends the wait for the final answer (up to the caller's deadline).
+    Returns the MAV_RESULT name, or ``"TIMEOUT"``.
+    """
+
+    def __init__(
+        self,
+        link: MavlinkLink,
+        target_system: int,
+        target_component: int = px4.MAV_COMP_ID_AUTOPILOT1,
+        *,
+        ack_timeout: float = 0.8,
+        attempts: int = 3,
+    ) -> None:
+        self.link = link
+        self.target = (target_system, target_component)
+        self.ack_timeout = ack_timeout
+        self.attempts = attempts
+        self._cond = threading.Condition()
+        self._acks: dict[int, tuple[int, int]] = {}  # command → (result, serial)
+        self._serial = 0
+        self._locks: dict[int, threading.Lock] = collections.defaultdict(threading.Lock)
+
+    def on_ack(self, msg: Any, now: float) -> None:
+        ts = getattr(msg, "target_system", 0)
+        if ts not in (0, self.link.mav.srcSystem):
+            return  # an answer to a ground station
+        with self._cond:
+            self._serial += 1
+            self._acks[int(msg.command)] = (int(msg.result), self._serial)
+            self._cond.notify_all()
+
+    def send(self, command: int, params: Sequence[float] = (), confirmation: int = 0) -> bool:
+        """Send once, expecting nothing back."""
+        p = [float(x) for x in params][:7]
+        p += [0.0] * (7 - len(p))
+        msg = self.link.mav.command_long_encode(*self.target, command, confirmation, *p)
+        return self.link.send(msg)
+
+    def command(self, command: int, params: Sequence[float] = (), deadline: float | None = None) -> str:
+        """Run one command to its final result (MAV_RESULT name) or ``"TIMEOUT"``."""
+        deadline = time.monotonic() + self.ack_timeout * self.attempts if deadline is None else deadline
+        with self._locks[command]:
+            for attempt in range(self.attempts):
+                with self._cond:
+                    start = self._serial
+                self.send(command, params, attempt)
+                wait_until = min(deadline, time.monotonic() + self.ack_timeout)
+                result = self._wait_ack(command, start, wait_until)
+                while result == px4.MAV_RESULT_IN_PROGRESS:
+                    with self._cond:
+                        start = self._serial
+                    result = self._wait_ack(command, start, deadline)
+                    if result is None:
+                        return "TIMEOUT"
+                if result is not None:
+                    return px4.result_name(result)
+                if time.monotonic() >= deadline:
+                    break
+            return "TIMEOUT"
+
+    def _wait_ack(self, command: int, after: int, until: float) -> int | None:
+        with self._cond:
+            while True:
+                got = self._acks.get(command)
+                if got is not None and got[1] > after:
+                    return got[0]
+                left = until - time.monotonic()
+                if left <= 0:
+                    return None
+                self._cond.wait(left)
+
+
+class ParamClient:
+    """The parameter protocol: read by name, write and read back; values decoded bytewise (INT32)."""
+
+    def __init__(
+        self, link: MavlinkLink, target_system: int, *, timeout: float = 0.8, attempts: int = 3
+    ) -> None:
+        self.link = link
+        self.target_system = target_system
+        self.timeout = timeout
+        self.attempts = attempts
+        self._cond = threading.Condition()
+        self._values: dict[str, tuple[float, int, int]] = {}  # name → (wire float, type, serial)
+        self._serial = 0
+
+    def on_param_value(self, msg: Any, now: float) -> None:
+        name = px4.param_name_from_field(msg.param_id)
+        with self._cond:
+            self._serial += 1
+            self._values[name] = (float(msg.param_value), int(msg.param_type), self._serial)
+            self._cond.notify_all()
+
+    def read(self, names: Iterable[str], deadline: float) -> dict[str, tuple[px4.ParamValue, int]]:
+        """Values and MAV_PARAM_TYPEs of the parameters that answered before ``deadline``."""
+        pending = list(dict.fromkeys(names))
+        got: dict[str, tuple[px4.ParamValue, int]] = {}
+        for _ in range(self.attempts):
+            if not pending or time.monotonic() >= deadline:
+                break
+            with self._cond:
+                start = self._serial
+            for name in pending:
+                self.link.send(
+                    self.link.mav.param_request_read_encode(
+                        self.target_system, 1, px4.param_name_bytes(name), -1
+                    )
+                )
+            until = min(deadline, time.monotonic() + self.timeout + 0.02 * len(pending))
+            with self._cond:
+                while True:
+                    for name in list(pending):
+                        value = self._values.get(name)
+                        if value is not None and value[2] > start:
+                            got[name] = (_decode(value[0], value[1]), value[1])
+                            pending.remove(name)
+                    left = until - time.monotonic()
+                    if not pending or left <= 0:
+                        break
+                    self._cond.wait(left)
+        return got
+
+    def write(
+        self, name: str, value: px4.ParamValue, param_type: int, deadline: float
+    ) -> tuple[px4.ParamValue, int] | None:
+        """Set one parameter; the value read back (PX4 answers a PARAM_SET with PARAM_VALUE), or None."""
+        encoded = px4.encode_param_value(value, param_type)
+        for _ in range(self.attempts):
+            if time.monotonic() >= deadline:
+                break
+            with self._cond:
+                start = self._serial
+            self.link.send(
+                self.link.mav.param_set_encode(
+                    self.target_system, 1, px4.param_name_bytes(name), encoded, param_type
+                )
+            )
+            until = min(deadline, time.monotonic() + self.timeout)
+            with self._cond:
+                while True:
+                    got = self._values.get(name)
+                    if got is not None and got[2] > start:
+                        return _decode(got[0], got[1]), got[1]
+                    left = until - time.monotonic()
+                    if left <= 0:
+                        break
+                    self._cond.wait(left)
+        return None
+
+
+def _decode(wire_value: float, param_type: int) -> px4.ParamValue:
+    try:
+        return px4.decode_param_value(wire_value, param_type)
+    except px4.Px4Error:
+        return wire_value
+
+
+def param_equal(have: px4.ParamValue, want: px4.ParamValue, param_type: int) -> bool:
+    """Whether a parameter read back equals the wanted value (REAL32 compared as float32)."""
+    if param_type == px4.MAV_PARAM_TYPE_REAL32:
+        f32 = struct.unpack("<f", struct.pack("<f", float(want)))[0]
+        return bool(have == f32 or abs(float(have) - float(want)) <= 1e-6 * max(1.0, abs(float(want))))
+    return float(have) == float(want)
+
+
+class SetupChecker:
+    """Checks (and sets) the parameters the arena requires (:data:`~arena_common.px4.ARENA_REQUIRED_PARAMS`).
+
+    :attr:`ok` is None until a check completed, then whether every parameter matched.
+    """
+
+    def __init__(
+        self,
+        params: ParamClient,
+        events: EventSink,
+        required: Mapping[str, tuple[px4.ParamValue, int]] = px4.ARENA_REQUIRED_PARAMS,
+    ) -> None:
+        self.params = params
+        self.events = events
+        self.required = dict(required)
+        self.ok: bool | None = None
+        self.report: dict[str, Any] = {}
+        self._lock = threading.Lock()
+
+    def _rows(self, got: Mapping[str, tuple[px4.ParamValue, int]]) -> dict[str, dict[str, Any]]:
+        rows: dict[str, dict[str, Any]] = {}
+        for name, (want, want_type) in self.required.items():
+            have = got.get(name)
+            ptype = have[1] if have else want_type
+            rows[name] = {
+                "want": want,
+                "have": have[0] if have else None,
+                "type": _PARAM_TYPE_NAMES.get(ptype, str(ptype)),
+                "ok": have is not None and param_equal(have[0], want, ptype),
+            }
+        return rows
+
+    def check(self, deadline: float, *, announce: bool = True) -> dict[str, Any]:
+        """Read every required parameter; the report ``{ok, params: {name: {want, have, type, ok}}, …}``."""
+        with self._lock:
+            got = self.params.read(self.required, deadline)
+            rows = self._rows(got)
+            missing = [n for n, r in rows.items() if r["have"] is None]
+            wrong = [n for n, r in rows.items() if not r["ok"] and r["have"] is not None]
+            ok = not missing and not wrong
+            if missing and len(missing) == len(rows):
+                # Nothing answered: the check did not happen (link down), keep the previous verdict.
+                report = {"ok": False, "params": rows, "missing": missing, "wrong": wrong, "complete": False}
+                self.report = report
+                return report
+            self.ok = ok
+            report = {"ok": ok, "params": rows, "missing": missing, "wrong": wrong, "complete": True}
+            self.report = report
+        if announce:
+            if ok:
+                self.events.emit("setup", "arena parameters set", 6)
+            else:
+                diff = ", ".join(f"{n}={rows[n]['have']} (want {rows[n]['want']})" for n in wrong)
+                parts = [p for p in (diff, f"no answer for {', '.join(missing)}" if missing else "") if p]
+                self.events.emit(
+                    "setup", "arena parameters not set: " + "; ".join(parts), 4, wrong=wrong, missing=missing
+                )
+        return report
+
+    def setup(self, deadline: float) -> dict[str, Any]:
+        """Write every required parameter that differs, read all back; the check report plus ``written``."""
+        first = self.check(deadline, announce=False)
+        written: list[str] = []
+        failed: list[str] = []
+        for name, row in first["params"].items():
+            if row["ok"]:
+                continue
+            want, want_type = self.required[name]
+            ptype = next((t for t, n in _PARAM_TYPE_NAMES.items() if n == row["type"]), want_type)
+            try:
+                back = self.params.write(name, want, ptype, deadline)
+            except px4.Px4Error as exc:
+                failed.append(f"{name}: {exc}")
+                continue
+            if back is None:
+                failed.append(f"{name}: no answer")
+            else:
+                written.append(name)
+        report = self.check(deadline)
+        report["written"] = written
+        report["failed"] = failed
+        report["reboot_required"] = sorted(REBOOT_REQUIRED.intersection(written))
+        if written:
+            self.events.emit("setup", f"wrote {', '.join(written)}", 5, written=written)
+        return report

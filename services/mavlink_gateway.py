@@ -1,0 +1,100 @@
+"""MAVLink gateway: one process per vehicle between the arena bus and its PX4.
+
+Vision poses (``arena/<drone>/vision``) go to the autopilot as ODOMETRY; its state, telemetry and events
+come back (``arena/<drone>/state``, ``…/telemetry/<MSG>``, ``…/events``); commands are served on
+``arena/<drone>/cmd``, offboard setpoints streamed from ``arena/<drone>/setpoint`` under leases and the
+arena's safety rules, and ``arena/estop`` lands (or kills) the vehicle.  See
+:mod:`arena_common.gateway`.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Annotated
+
+import typer
+
+from arena_common.bus import BusOptions
+from arena_common.config import ArenaConfig
+from arena_common.errors import ConfigError
+from arena_common.gateway import Gateway, GatewayOptions
+from arena_common.options import (
+    ConfigOpt,
+    ConnectOpt,
+    HostOpt,
+    ListenOpt,
+    LogOpt,
+    ModeOpt,
+    ZConfigOpt,
+    bus_options,
+    load_config,
+)
+from arena_common.service import running, setup_logging
+
+SERVICE = "gateway"
+
+
+def main(
+    cfg: ArenaConfig,
+    options: BusOptions | None = None,
+    *,
+    vehicle: str,
+    gateway: GatewayOptions | None = None,
+    host: str | None = None,
+    stop: threading.Event | None = None,
+) -> None:
+    """Run the gateway of ``vehicle`` until ``stop`` is set (or SIGINT/SIGTERM)."""
+    cfg.vehicle(vehicle)  # an unknown vehicle fails before anything opens
+    with (
+        running(SERVICE, cfg, options, vehicle=vehicle, host=host, stop=stop) as svc,
+        Gateway(cfg, vehicle, svc.bus, options=gateway, stats=svc.stats, log=svc.log) as gw,
+    ):
+        gw.run(svc.stop)
+
+
+def cli(
+    vehicle: Annotated[str, typer.Option("--vehicle", "-v", help="The vehicle to serve (config name).")],
+    sysid: Annotated[int, typer.Option("--sysid", help="Our own MAVLink system id (not 255: QGC's).")] = 245,
+    gcs: Annotated[
+        str | None, typer.Option("--gcs", help="Forward MAVLink to a ground station (overrides the config).")
+    ] = None,
+    allow_gcs_manual: Annotated[
+        bool,
+        typer.Option("--allow-gcs-manual", help="Forward RC_CHANNELS_OVERRIDE/MANUAL_CONTROL from the GCS."),
+    ] = False,
+    telemetry_rate: Annotated[
+        float, typer.Option("--telemetry-rate", help="Raw telemetry per message type, Hz (0: none).")
+    ] = 10.0,
+    state_rate: Annotated[float, typer.Option("--state-rate", help="State publications per second.")] = 50.0,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+    host: HostOpt = None,
+    log_level: LogOpt = "INFO",
+) -> None:
+    """MAVLink gateway of one vehicle: vision out, state/telemetry/events in, commands, setpoints."""
+    setup_logging(log_level)
+    cfg = load_config(config)
+    assert cfg is not None
+    if not 1 <= sysid <= 254:
+        raise typer.BadParameter(f"--sysid must be within 1..254, got {sysid}")
+    if not state_rate > 0:
+        raise typer.BadParameter(f"--state-rate must be positive, got {state_rate}")
+    options = GatewayOptions(
+        source_system=sysid,
+        gcs=gcs,
+        allow_gcs_manual=allow_gcs_manual,
+        telemetry_rate=telemetry_rate,
+        state_rate=state_rate,
+    )
+    try:
+        main(cfg, bus_options(mode, connect, listen, zconfig), vehicle=vehicle, gateway=options, host=host)
+    except ConfigError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+if __name__ == "__main__":
+    typer.run(cli)
