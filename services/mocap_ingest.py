@@ -62,6 +62,7 @@ class _Route:
 
 
 _SKIP = object()  # a body nobody wants (cached until the model definitions change)
+_WAIT = object()  # a body whose name is not known yet (model definitions not received)
 
 
 def body_key_name(name: str, body_id: int) -> str:
@@ -146,7 +147,7 @@ class Ingest:
             return claimed
         if name is None and frame.models == 0 and self.by_name:
             self._count("awaiting_modeldef")
-            return _SKIP  # not cached: the names may arrive with the next frame
+            return _WAIT  # not cached: the names may arrive with the next frame
         label = name if name is not None else str(body_id)
         self.svc.log.info("rigid body %r (id %d) belongs to no vehicle", label, body_id)
         route: _Route | object = _SKIP
@@ -176,7 +177,8 @@ class Ingest:
             if route is None:
                 route = self._resolve(body.id, frame)
             if not isinstance(route, _Route):
-                unknown += 1
+                if route is _SKIP:
+                    unknown += 1
                 continue
             vehicle = route.vehicle
             if not vehicle:

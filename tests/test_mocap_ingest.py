@@ -7,6 +7,7 @@ unicast); the service runs in a thread with a stop event, and once as a real pro
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import os
 import subprocess
@@ -248,29 +249,52 @@ def test_the_service_survives_a_bad_interface(
     )
 
 
+def long_take(tmp_path: Path, laps: int) -> Path:
+    """The test take repeated ``laps`` times, frame numbers and times going on (a longer Motive export)."""
+    lines = TAKE.read_text().splitlines()
+    header, rows = lines[:7], lines[7:]
+    out = list(header)
+    for lap in range(laps):
+        for row in rows:
+            cells = row.split(",")
+            number = int(cells[0]) + lap * len(rows)
+            out.append(",".join([str(number), f"{number / 120:.6f}", *cells[2:]]))
+    path = tmp_path / "long_take.csv"
+    path.write_text("\n".join(out) + "\n")
+    return path
+
+
 def test_csv_take_replayed_through_the_service(
     tmp_path: Path,
     router_endpoint: str,
     bus_factory: Callable[[], Bus],
     service: Callable[..., threading.Event],
 ) -> None:
-    cfg = make_config(tmp_path, router_endpoint, mocap=f'source = "csv"\ncsv_file = "{TAKE}"')
-    bus = bus_factory()
-    sub = bus.subscribe("arena/*/mocap", capacity=10_000, ring=False)
+    # 10 s of take: the subscriber may join the bus after the replay started, what it gets must be right.
+    take = long_take(tmp_path, 50)
+    cfg = make_config(tmp_path, router_endpoint, mocap=f'source = "csv"\ncsv_file = "{take.name}"')
+    sub = bus_factory().subscribe("arena/*/mocap", capacity=10_000, ring=False)
     seen: dict[str, Any] = {}
-    time.sleep(0.3)  # let the subscriber's declaration reach the router before the take starts
     service(cfg)
-    wait_for(
-        lambda: len(latest(sub, seen).get(keys.mocap("d1"), [])) >= 24, timeout=10, what="the whole take"
-    )
+
+    def enough() -> bool:
+        got = latest(sub, seen)
+        return len(got.get(keys.mocap("d1"), [])) >= 60 and any(
+            not p.ok for p in got.get(keys.mocap("d2"), [])
+        )
+
+    wait_for(enough, timeout=15, what="a second of the take and an untracked d2")
     d1, d2 = seen[keys.mocap("d1")], seen[keys.mocap("d2")]
-    assert [p.fn for p in d1] == list(range(24))
-    assert d1[3].p == pytest.approx((0.03, 1.0, -0.5))
-    assert d1[3].q == pytest.approx((math.cos(0.075), 0.0, math.sin(0.075), 0.0), abs=1e-6)
-    assert [p.fn for p in d2 if not p.ok] == [10, 11, 12]
-    span = (d1[-1].t - d1[0].t) / 1e9
-    assert span == pytest.approx(23 / 120, abs=0.002)  # the take's own timing
-    assert all(p.tsrc == "arrival" for p in d1)
+    for pose in d1:
+        k = pose.fn % 24
+        assert pose.ok and pose.id == 1 and pose.name == "d1" and pose.tsrc == "arrival"
+        assert pose.p == pytest.approx((0.01 * k, 1.0, -0.5), abs=1e-6)
+        assert pose.q == pytest.approx((math.cos(0.025 * k), 0.0, math.sin(0.025 * k), 0.0), abs=1e-6)
+        assert pose.mts == pytest.approx(pose.fn / 120, abs=1e-6)
+    assert all(p.ok is not (10 <= p.fn % 24 <= 12) for p in d2)
+    for a, b in itertools.pairwise(d1):
+        assert b.fn > a.fn
+        assert (b.t - a.t) / 1e9 == pytest.approx((b.fn - a.fn) / 120, abs=2e-6)  # the take's own timing
 
 
 def test_runs_as_a_process(tmp_path: Path, router_endpoint: str, bus_factory: Callable[[], Bus]) -> None:
@@ -303,3 +327,152 @@ def test_runs_as_a_process(tmp_path: Path, router_endpoint: str, bus_factory: Ca
         wait_for(lambda: server.count(MessageId.DISCONNECT) >= 1, what="DISCONNECT when the process stops")
     finally:
         server.close()
+
+
+# ------------------------------------------------------------------------------------------------------------
+# End to end with the Motive emulator (services/sim_mocap.py)
+# ------------------------------------------------------------------------------------------------------------
+
+_C45 = math.cos(math.pi / 4)
+# True poses (arena NED, FRD): d1 yawed 90° to the east, d2 level facing north.
+TRUTH = {"d1": ((1.0, -0.5, -1.2), (_C45, 0.0, 0.0, _C45)), "d2": ((-1.0, 0.5, -0.8), (1.0, 0.0, 0.0, 0.0))}
+# The same in Motive's Y-up frame (brief §3 inverted: x = north, y = up, z = east).
+MOTIVE = {"d1": ((1.0, 1.2, -0.5), (_C45, 0.0, -_C45, 0.0)), "d2": ((-1.0, 0.8, 0.5), (1.0, 0.0, 0.0, 0.0))}
+EMULATOR_LATENCY_NS = 5_380_000  # sim_mocap's camera (4.57 ms) plus software (0.81 ms) latency
+
+
+@pytest.fixture
+def emulator(bus_factory: Callable[[], Bus]) -> Iterator[Callable[..., None]]:
+    """Run the Motive emulator in a thread, fed with the true poses of :data:`TRUTH` at 50 Hz."""
+    from services import sim_mocap
+
+    stop = threading.Event()
+    threads: list[threading.Thread] = []
+
+    def start(cfg: ArenaConfig, **kwargs: Any) -> None:
+        bus = bus_factory()
+
+        def feed_truth() -> None:
+            while not stop.wait(0.02):
+                for vehicle, (p, q) in TRUTH.items():
+                    bus.put(
+                        keys.truth(vehicle), wire.Pose(t=time.time_ns(), p=p, q=q, ok=True), realtime=True
+                    )
+
+        threads.append(threading.Thread(target=feed_truth, daemon=True))
+        threads.append(
+            threading.Thread(
+                target=sim_mocap.main,
+                args=(cfg,),
+                kwargs={"stop": stop, "host": "test", **kwargs},
+                daemon=True,
+            )
+        )
+        for thread in threads:
+            thread.start()
+
+    yield start
+    stop.set()
+    for thread in threads:
+        thread.join(timeout=10)
+        assert not thread.is_alive(), "the emulator did not stop"
+
+
+def emulator_config(tmp_path: Path, router: str, version: str, multicast: bool) -> ArenaConfig:
+    path = write_config(tmp_path, router, 2, natnet_version=version, noise_m=0.0)
+    text = path.read_text().replace("[mocap]\n", f"[mocap]\nmulticast = {str(multicast).lower()}\n", 1)
+    path.write_text(text.replace('rigid_body = "d2"', "rigid_body = 2"))  # d2 claimed by id
+    return config_mod.load(path)
+
+
+@pytest.mark.parametrize("multicast", [True, False], ids=["multicast", "unicast"])
+@pytest.mark.parametrize("version", ["3.0", "3.1", "4.0", "4.1"])
+def test_end_to_end_with_the_motive_emulator(
+    tmp_path: Path,
+    router_endpoint: str,
+    bus_factory: Callable[[], Bus],
+    service: Callable[..., threading.Event],
+    emulator: Callable[..., None],
+    version: str,
+    multicast: bool,
+) -> None:
+    cfg = emulator_config(tmp_path, router_endpoint, version, multicast)
+    sub = bus_factory().subscribe("arena/*/mocap", capacity=100_000, ring=False)
+    seen: dict[str, Any] = {}
+    emulator(cfg)
+    service(cfg)
+
+    def good(vehicle: str) -> list[wire.MocapPose]:
+        return [p for p in seen.get(keys.mocap(vehicle), []) if p.ok and p.tsrc == "echo"]
+
+    wait_for(
+        lambda: latest(sub, seen) and len(good("d1")) >= 10 and len(good("d2")) >= 10,
+        timeout=20,
+        what=f"echo-timed, tracked poses of d1 and d2 (got {sorted(seen)})",
+    )
+    for vehicle, body_id in (("d1", 1), ("d2", 2)):
+        poses = good(vehicle)
+        pose = poses[-1]
+        p, q = MOTIVE[vehicle]
+        assert (pose.id, pose.name) == (body_id, vehicle)
+        assert pose.p == pytest.approx(p, abs=1e-6)
+        assert pose.q == pytest.approx(q, abs=1e-6)
+        assert pose.lat == pytest.approx(EMULATOR_LATENCY_NS, abs=200)
+        # t is the exposure on our clock: before publication by the latency and a little transport.
+        assert all(
+            EMULATOR_LATENCY_NS - 1_000_000 < x.tp - x.t < EMULATOR_LATENCY_NS + 50_000_000 for x in poses
+        )
+        numbers = [x.fn for x in poses]
+        assert numbers == sorted(numbers) and len(set(numbers)) == len(numbers)
+    # Before the first true pose the emulator streams the bodies untracked: published with ok=False.
+    first = seen[keys.mocap("d1")][0]
+    assert first.ok or first.fn < good("d1")[0].fn
+
+
+def test_probe_against_the_motive_emulator(
+    tmp_path: Path, router_endpoint: str, emulator: Callable[..., None]
+) -> None:
+    cfg = emulator_config(tmp_path, router_endpoint, "4.1", True)
+    emulator(cfg)
+    args = [sys.executable, "-m", "arena_common.cli", "mocap", "probe", "--server", "127.0.0.1"]
+    args += ["--interface", "127.0.0.1", "--command-port", str(cfg.mocap.command_port), "--duration", "1.5"]
+    start = time.monotonic()
+    result = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=30)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert time.monotonic() - start < 15
+    out = result.stdout
+    assert "NatNet 4.1.0.0" in out and "clock 10,000,000 Hz" in out
+    assert f"multicast 239.255.42.99:{cfg.mocap.data_port}" in out
+    assert "clock sync: echo" in out
+    rows = {
+        line.split()[1]: line.split() for line in out.splitlines() if line.strip().startswith(("1 ", "2 "))
+    }
+    assert set(rows) == {"d1", "d2"}
+    for row in rows.values():
+        assert float(row[2]) == pytest.approx(180.0, rel=0.1)  # sim.mocap_rate
+        assert row[4] == "5.38"  # latency p50, ms
+
+
+def test_probe_says_when_nothing_answers(tmp_path: Path) -> None:
+    port = FakeMotive(answer_connect=False)
+    try:
+        args = [sys.executable, "-m", "arena_common.cli", "mocap", "probe", "--server", "127.0.0.1"]
+        args += ["--command-port", str(port.command_port), "--duration", "0.8"]
+        result = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=30)
+    finally:
+        port.close()
+    assert result.returncode == 1
+    assert "no answer from 127.0.0.1" in result.stderr and "firewall" in result.stderr
+
+
+def test_probe_says_when_no_frame_arrives() -> None:
+    server = FakeMotive("3.0")
+    try:
+        args = [sys.executable, "-m", "arena_common.cli", "mocap", "probe", "--server", "127.0.0.1"]
+        args += ["--command-port", str(server.command_port), "--duration", "0.8"]
+        result = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=30)
+    finally:
+        server.close()
+    assert result.returncode == 1, result.stdout
+    assert "Motive 3.1.0.0, NatNet 3.0.0.0" in result.stdout
+    assert "no frame arrived" in result.stderr
