@@ -250,9 +250,7 @@ class NatNetClient:
         self._echo_burst = 0
         self._echo_sent: collections.deque[int] = collections.deque(maxlen=32)
         self._last_frame = 0.0  # monotonic time of the last frame, or of the SERVERINFO starting a session
-        self._connected = False
         self._decode_failures = 0
-        self._restarts = 0
 
     # -- lifetime ---------------------------------------------------------------------------------
     def open(self) -> NatNetClient:
@@ -389,7 +387,6 @@ class NatNetClient:
         """Forget the session and send CONNECT; retries follow the back-off."""
         self.info = None
         self._version = None
-        self._connected = False
         self.clock = None
         self._next_modeldef = self._next_echo = self._next_keepalive = math.inf
         if reset_backoff:
@@ -556,12 +553,14 @@ class NatNetClient:
                 self._open_data_socket(info)
             except MocapError as exc:
                 self._reject("socket_error", str(exc))
-        if self.group is not None and info.is_multicast and info.multicast_group not in (None, self.group):
-            self._reject(
-                "config_mismatch",
-                f"server streams to {info.multicast_group}:{info.data_port}, listening on "
-                f"{self.group}:{self.data_address[1] if self.data_address else '?'}",
-            )
+        if self.multicast and info.is_multicast and self.data_address is not None:
+            announced = (info.multicast_group, info.data_port)
+            if announced != self.data_address:
+                self._reject(
+                    "config_mismatch",
+                    f"server streams to {announced[0]}:{announced[1]}, listening on "
+                    f"{self.data_address[0]}:{self.data_address[1]} (check mocap.group and mocap.data_port)",
+                )
         if info.is_multicast is not None and info.is_multicast != self.multicast:
             self._reject(
                 "config_mismatch",
@@ -581,7 +580,6 @@ class NatNetClient:
         self._next_echo = now if self.clock is not None else math.inf
         self._echo_burst = 4
         self._next_keepalive = now if (not self.multicast and info.natnet_version.major >= 4) else math.inf
-        self._connected = True
 
     def _on_model_defs(self, payload: bytes) -> None:
         if self._version is None:
@@ -638,7 +636,6 @@ class NatNetClient:
                 self._reject("out_of_order", f"frame {fn} after {last}")
                 return None
             # A new session (Motive restarted, or a take looped): its clock and maybe its version changed.
-            self._restarts += 1
             self._reject("server_restart", f"frame number went back from {last} to {fn}: handshake again")
             self.last_frame_number = None
             self._start_handshake(time.monotonic(), reset_backoff=True)

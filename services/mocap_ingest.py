@@ -131,6 +131,7 @@ class Ingest:
         self.pubs = {v: svc.bus.stream_publisher(keys.mocap(v), wire.MocapPose) for v in cfg.vehicles}
         self.unknown_pubs: dict[str, Publisher[wire.MocapPose]] = {}
         self.tracked: dict[str, bool] = {}
+        self._logged: dict[str, float] = {}
         self.published = 0
         self._routes: dict[int, _Route | object] = {}
         self._models = -1
@@ -163,6 +164,19 @@ class Ingest:
         self._routes[body_id] = route
         return route
 
+    def _tracking_changed(self, vehicle: str, ok: bool) -> None:
+        """Count and log (at most every 2 s per vehicle: tracking may flicker) a change of tracking."""
+        first = vehicle not in self.tracked
+        self.tracked[vehicle] = ok
+        if not ok:
+            self._count("tracking_lost")
+        if first and ok:
+            return
+        now = time.monotonic()
+        if now - self._logged.get(vehicle, -10.0) >= 2.0:
+            self._logged[vehicle] = now
+            self.svc.log.info("%s: tracking %s", vehicle, "regained" if ok else "lost")
+
     def handle(self, frame: TimedFrame) -> int:
         """Publish every body of one frame; return how many poses went out."""
         if frame.models != self._models:
@@ -190,9 +204,7 @@ class Ingest:
             route.pub.put_raw(encode_pose(t, fn, body, ok, route.name, lat, mts, tsrc, tp))
             out += 1
             if vehicle and self.tracked.get(vehicle) is not ok:
-                if vehicle in self.tracked or not ok:
-                    self.svc.log.info("%s: tracking %s", vehicle, "regained" if ok else "lost")
-                self.tracked[vehicle] = ok
+                self._tracking_changed(vehicle, ok)
         self._count("in")
         if out:
             self._count("out", out)

@@ -525,6 +525,26 @@ def test_configuration_errors_are_clear() -> None:
         NatNetClient(LOOP, interface="192.0.2.77").open()
 
 
+def test_a_stream_configured_differently_is_reported(fake_motive: Callable[..., FakeMotive]) -> None:
+    server = fake_motive("3.1")
+    rejects = Rejects()
+    other_port = free_port(socket.SOCK_DGRAM)
+    with client_for(server, on_reject=rejects, data_port=other_port) as client:
+        poll_until(client, connected(client))
+    assert rejects.items == [
+        (
+            "config_mismatch",
+            f"server streams to {DEFAULT_GROUP}:{server.data_port}, listening on "
+            f"{DEFAULT_GROUP}:{other_port} (check mocap.group and mocap.data_port)",
+        )
+    ]
+    rejects = Rejects()
+    with client_for(server, on_reject=rejects, multicast=False) as client:
+        poll_until(client, connected(client))
+    assert rejects.reasons() == ["config_mismatch"]
+    assert "server streams multicast, client expects unicast" in rejects.items[0][1]
+
+
 def test_foreign_senders_on_the_command_socket_are_ignored(fake_motive: Callable[..., FakeMotive]) -> None:
     server = fake_motive("3.0")
     rejects = Rejects()
