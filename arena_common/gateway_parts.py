@@ -167,12 +167,13 @@ class VehicleState:
             self.events.emit("link", f"heartbeat from system {self.system_id}: link up ({mode})", 5)
             for cb in self.on_link_change:
                 cb(True)
+        # Arming state first: after a disarm PX4 may report another mode, and that comes after.
+        if armed != old_armed:
+            self.events.emit("armed", "armed" if armed else "disarmed", 5, armed=armed)
         if mode != old_mode:
             self.events.emit("mode", f"mode {old_mode} → {mode}", 5, old=old_mode, mode=mode)
             for cb2 in self.on_mode_change:
                 cb2(old_mode, mode)
-        if armed != old_armed:
-            self.events.emit("armed", "armed" if armed else "disarmed", 5, armed=armed)
         flag, old_flag = _STATUS_FLAGS.get(status), _STATUS_FLAGS.get(old_status)
         if flag != old_flag:
             if flag:

@@ -35,7 +35,7 @@ from typing import Any
 os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink import mavutil
-from pymavlink.dialects.v20 import common as mavlink2
+from pymavlink.dialects.v20 import all as mavlink2  # common + development + the rest: every CRC_EXTRA
 
 from arena_common.errors import ArenaError
 
@@ -103,7 +103,8 @@ class FrameSplitter:
     """Split bytes into MAVLink 1/2 frames, checking each CRC.
 
     ``stream=True`` (serial, TCP) keeps an incomplete tail for the next :meth:`feed` and resynchronises
-    after garbage or a bad CRC by skipping one byte; a datagram (UDP) is parsed on its own.
+    after garbage, a bad CRC or an unknown message id by skipping one byte; a datagram (UDP) is parsed on
+    its own and may carry messages unknown to pymavlink's dialects (forwarded, never decoded).
     """
 
     def __init__(self, stream: bool = True) -> None:
@@ -148,7 +149,9 @@ class FrameSplitter:
                 i = j
                 continue
             raw = bytes(buf[i : i + total])
-            if _crc_ok(raw, header, plen, msgid) is False:
+            crc = _crc_ok(raw, header, plen, msgid)
+            # In a byte stream a message unknown to every dialect is most likely a false start.
+            if crc is False or (crc is None and self.stream):
                 self.bad_crc += 1
                 i += 1
                 continue

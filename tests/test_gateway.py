@@ -9,12 +9,17 @@ Everything the tests ask goes through the bus: commands on the queryable, state 
 from __future__ import annotations
 
 import math
+import os
+import select
 import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil
 
 from arena_common import keys, px4, wire
 from arena_common.bus import Bus
@@ -32,13 +37,19 @@ class Rig:
     """Simulated vehicles, their gateways, a vision feeder and a client bus."""
 
     def __init__(
-        self, cfg: ArenaConfig, bus: Bus, *, speed: float = SPEED, params: dict[str, Any] | None = None
+        self,
+        cfg: ArenaConfig,
+        bus: Bus,
+        *,
+        speed: float = SPEED,
+        params: dict[str, Any] | None = None,
+        simulate: bool = True,
     ) -> None:
         self.cfg = cfg
         self.bus = bus
         self.clock = SimClock(speed)
         self.aps: dict[str, SimAutopilot] = {}
-        for name, v in cfg.vehicles.items():
+        for name, v in cfg.vehicles.items() if simulate else ():
             north, east = v.sim.start
             self.aps[name] = SimAutopilot(
                 v.sim_mavlink(),
@@ -48,7 +59,7 @@ class Rig:
                 position=(north, east, 0.0),
                 params=params,
             )
-        self.loop = AutopilotLoop(self.aps.values()).start()
+        self.loop = AutopilotLoop(self.aps.values()).start() if self.aps else None
         self.feeding = dict.fromkeys(self.aps, True)
         self.rc = dict.fromkeys(self.aps, 0)
         self.states: dict[str, wire.State] = {}
@@ -59,6 +70,7 @@ class Rig:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._vision = {name: bus.stream_publisher(keys.vision(name), wire.Pose) for name in self.aps}
+        self.state_count.update(dict.fromkeys(cfg.vehicles, 0))
         self._state_sub = bus.subscribe("arena/*/state", capacity=256, ring=True)
         self._event_sub = bus.subscribe("arena/*/events", capacity=10_000, ring=False)
         self._threads = [
@@ -194,13 +206,14 @@ class Rig:
         self._stop.set()
         for t in self._threads:
             t.join(2.0)
-        self.loop.stop()
+        if self.loop is not None:
+            self.loop.stop()
         for ap in self.aps.values():
             ap.close()
 
 
-@pytest.fixture
-def make_rig(
+@pytest.fixture(name="make_rig")
+def rig_factory(
     arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
 ) -> Iterator[Callable[..., Rig]]:
     rigs: list[Rig] = []
@@ -212,9 +225,10 @@ def make_rig(
         start: bool = True,
         speed: float = SPEED,
         extra: str = "",
+        simulate: bool = True,
     ) -> Rig:
         cfg = arena_config(n_vehicles=n_vehicles, extra=extra, speed=speed)
-        rig = Rig(cfg, bus_factory(), speed=speed, params=params)
+        rig = Rig(cfg, bus_factory(), speed=speed, params=params, simulate=simulate)
         rigs.append(rig)
         if start:
             for name in cfg.vehicles:
@@ -313,10 +327,10 @@ def test_state_telemetry_and_timesync(make_rig: Callable[..., Rig]) -> None:
     for item in sub.channel.drain():
         assert isinstance(item.payload, wire.Telemetry)
         tele[item.payload.msg] = tele.get(item.payload.msg, 0) + 1
-    s = rig.state("d1")
-    assert s is not None
-    assert 35 <= s.vis_rate <= 60, s.vis_rate
-    assert s.vis_age is not None and s.vis_age < 0.1
+    later = rig.state("d1")
+    assert later is not None
+    assert 35 <= later.vis_rate <= 60, later.vis_rate
+    assert later.vis_age is not None and later.vis_age < 0.1
     assert 70 <= n1 - n0 <= 110, n1 - n0  # 50 Hz
     # Raw telemetry: every message type, at most 10 Hz each; TIMESYNC requests are not republished.
     assert {"HEARTBEAT", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED", "SYS_STATUS", "HIGHRES_IMU"} <= set(
@@ -349,13 +363,14 @@ def test_command_refusals_errors_and_params(make_rig: Callable[..., Rig]) -> Non
     # PX4's own refusal comes back with its result and its reason.
     res = rig.cmd("d1", "mode", mode="POSCTL")
     assert res.result == "TEMPORARILY_REJECTED" and "no manual control input" in res.reason
-    for op, args, text in (
+    bad: tuple[tuple[str, dict[str, Any], str], ...] = (
         ("mode", {"mode": "FOO"}, "unknown PX4 mode"),
         ("goto", {"p": "north"}, "must be [north, east, down]"),
         ("takeoff", {"height": "high"}, "finite number"),
         ("param_set", {"name": "MPC_XY_P"}, "missing argument 'value'"),
         ("start", {}, "not a vehicle operation"),
-    ):
+    )
+    for op, args, text in bad:
         res = rig.cmd("d1", op, **args)
         assert res.result == "ERROR" and text in res.reason, (op, res)
     assert rig.cmd("d1", "param_get", name="NO_SUCH_PARAM").result == "TIMEOUT"
@@ -370,3 +385,43 @@ def test_command_refusals_errors_and_params(make_rig: Callable[..., Rig]) -> Non
     assert not ap.armed and ap.true_pose().position[2] == 0.0
     texts = [e.text for e in rig.event_list("d1") if e.kind == "command"]
     assert any(t.startswith("arm → REFUSED: vision stale") for t in texts)
+
+
+class MavPeer:
+    """A plain pymavlink endpoint playing a vehicle or a ground station: sends heartbeats, records input."""
+
+    def __init__(
+        self, url: str, sysid: int, compid: int = 1, *, autopilot: int = px4.MAV_AUTOPILOT_PX4
+    ) -> None:
+        self.conn = mavutil.mavlink_connection(
+            url, source_system=sysid, source_component=compid, dialect="common"
+        )
+        self.autopilot = autopilot
+        self.received: list[Any] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        next_hb = 0.0
+        while not self._stop.is_set():
+            if time.monotonic() >= next_hb:
+                next_hb = time.monotonic() + 0.25
+                mode = px4.encode_custom_mode(px4.MAIN_AUTO, px4.AUTO_LOITER)
+                self.conn.mav.heartbeat_send(
+                    px4.MAV_TYPE_QUADROTOR, self.autopilot, 1, mode, px4.MAV_STATE_STANDBY
+                )
+            select.select([self.conn.port], [], [], 0.01)
+            for _ in range(1000):
+                msg = self.conn.recv_msg()
+                if msg is None:
+                    break
+                self.received.append(msg)
+
+    def of(self, kind: str) -> list[Any]:
+        return [m for m in list(self.received) if m.get_type() == kind]
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self.conn.close()
