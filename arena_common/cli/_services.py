@@ -1,44 +1,60 @@
 """``arena run <service>`` and ``arena sim <part>``: run one arena process in the foreground.
 
 Each service module under ``services/`` exposes ``cli`` (its typer entry, parsing arguments apart from
-its pure ``main``); the ones present are registered here under their command names.
+its pure ``main``).  Modules are imported only when their command runs, so ``arena`` starts fast and one
+service's dependencies never stand in another's way; ``arena run gateway --help`` shows the service's
+own options.
 """
 
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 
 import typer
 
 RUN = {
-    "mocap": "services.mocap_ingest",
-    "transform": "services.frame_transform",
-    "downsampler": "services.downsampler",
-    "gateway": "services.mavlink_gateway",
-    "recorder": "services.recorder",
+    "mocap": ("services.mocap_ingest", "Mocap ingest: NatNet (or another source) → arena/<drone>/mocap."),
+    "transform": (
+        "services.frame_transform",
+        "Frame transform: arena/*/mocap → arena/<drone>/pose (NED/FRD).",
+    ),
+    "downsampler": ("services.downsampler", "Downsampler: arena/<drone>/pose → arena/<drone>/vision."),
+    "gateway": ("services.mavlink_gateway", "MAVLink gateway of one vehicle: the bus ↔ its PX4."),
+    "recorder": ("services.recorder", "Telemetry recorder: keys → MCAP files."),
 }
 SIM = {
-    "vehicle": "services.sim_vehicle",
-    "mocap": "services.sim_mocap",
-    "world": "services.sim_world",
+    "vehicle": ("services.sim_vehicle", "Simulated PX4 vehicles speaking MAVLink 2."),
+    "mocap": ("services.sim_mocap", "Motive emulator: a NatNet server streaming the simulated vehicles."),
+    "world": ("services.sim_world", "The whole simulated world: vehicles and Motive emulator."),
 }
 
 
-def _group(help_text: str, table: dict[str, str]) -> typer.Typer:
+def _lazy(module_name: str) -> Callable[[typer.Context], None]:
+    """A command that imports ``module_name`` when run and hands it every argument."""
+
+    def command(ctx: typer.Context) -> None:
+        module = importlib.import_module(module_name)
+        app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
+        app.command()(module.cli)
+        typer.main.get_command(app).main(
+            args=list(ctx.args), prog_name=ctx.command_path, standalone_mode=True
+        )
+
+    return command
+
+
+def _group(help_text: str, table: dict[str, tuple[str, str]]) -> typer.Typer:
     group = typer.Typer(help=help_text, no_args_is_help=True)
-    for name, module_name in table.items():
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name != module_name:
-                raise
-            continue
-        group.command(name)(module.cli)
+    settings = {"allow_extra_args": True, "ignore_unknown_options": True}
+    for name, (module_name, text) in table.items():
+        group.command(name, help=text, context_settings=settings, add_help_option=False)(_lazy(module_name))
     return group
 
 
 def register(app: typer.Typer) -> None:
     """Add ``run`` and ``sim`` to ``app``."""
     app.add_typer(_group("Run one arena service in the foreground.", RUN), name="run")
-    app.add_typer(_group("Run the simulated world: vehicles that speak MAVLink, a Motive emulator.", SIM),
-                  name="sim")
+    app.add_typer(
+        _group("Run the simulated world: vehicles that speak MAVLink, a Motive emulator.", SIM), name="sim"
+    )
