@@ -33,7 +33,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any, Protocol
 
@@ -148,6 +148,22 @@ def endpoint_address(endpoint: str) -> tuple[str, int] | None:
     return host, int(port_s)
 
 
+def host_options(cfg: ArenaConfig, host: HostSpec, options: BusOptions | None = None) -> BusOptions | None:
+    """The bus options of ``host``'s services: peers listen on the host's address when it has one.
+
+    Zenoh 1.x routers do not relay between two peers that cannot reach each other, and a peer listening
+    on loopback (the default) cannot be reached from another computer: so a host with an ``address``
+    has its peers listen on ``tcp/<address>:0``, and peers of different computers connect directly
+    (learning each other's endpoints by gossip through the router).  An explicit ``--listen`` or
+    ``zenoh.listen`` wins; clients and routers are left alone.
+    """
+    mode = (options.mode if options else None) or cfg.zenoh.mode
+    if not host.address or mode != "peer" or cfg.zenoh.listen or (options and options.listen):
+        return options
+    address = f"[{host.address}]" if ":" in host.address else host.address
+    return replace(options or BusOptions(), listen=(f"tcp/{address}:0",))
+
+
 def plan(
     cfg: ArenaConfig,
     host: str | None = None,
@@ -171,6 +187,7 @@ def plan(
         ready = next((a for a in map(endpoint_address, cfg.zenoh.router_listen) if a is not None), None)
         argv = (python, "-m", ROUTER_MODULE, "router", *common, *_bus_args(options, router=True))
         specs.append(ProcessSpec("router", argv, ready_port=ready))
+    options = host_options(cfg, h, options)
     for service in h.services:
         for name, module in SERVICE_PROCESSES.get(service, ()):
             specs.append(ProcessSpec(name, (python, "-m", module, *common, *level, *_bus_args(options))))

@@ -165,7 +165,11 @@ def test_plan_from_the_config(tmp_path: Path) -> None:
     assert specs[names.index("mocap")].argv[2] == "services.mocap_ingest"
 
     lab = config_mod.load(REPO / "deploy/lab.example.toml")
-    assert [s.name for s in plan(lab, "cc1")] == ["downsampler.c1", "gateway.c1"]
+    cc1 = plan(lab, "cc1")
+    assert [s.name for s in cc1] == ["downsampler.c1", "gateway.c1"]
+    # Peers of a computer with an address listen there, so that other computers' peers reach them.
+    assert cc1[0].argv[-2:] == ("--listen", "tcp/192.168.1.31:0")
+    assert "--listen" not in plan(lab, "cc1", options=BusOptions(mode="client"))[0].argv
     ground = plan(lab, "ground", options=BusOptions(connect=("tcp/10.0.0.1:7447",), zconfig="z.json5"))
     assert [s.name for s in ground] == [
         "router",
@@ -177,7 +181,14 @@ def test_plan_from_the_config(tmp_path: Path) -> None:
     ]
     assert ground[0].ready_port == ("127.0.0.1", 7447)  # tcp/0.0.0.0:7447 is probed on loopback
     assert "--connect" not in ground[0].argv and ground[0].argv[-2:] == ("--zconfig", "z.json5")
-    assert ground[1].argv[-4:] == ("--connect", "tcp/10.0.0.1:7447", "--zconfig", "z.json5")
+    assert ground[1].argv[-6:] == (
+        "--connect",
+        "tcp/10.0.0.1:7447",
+        "--listen",
+        "tcp/192.168.1.20:0",
+        "--zconfig",
+        "z.json5",
+    )
 
     with pytest.raises(
         ConfigError, match=r"host 'nope' is not in the config \(known hosts: ground, cc1, cc2\)"
