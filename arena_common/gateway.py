@@ -1,7 +1,8 @@
 """The MAVLink gateway of one vehicle: the arena bus on one side, its PX4 on the other.
 
 :class:`Gateway` wires the parts (:mod:`arena_common.gateway_parts`, :mod:`arena_common.gateway_setpoints`,
-:mod:`arena_common.gateway_commands`, :mod:`arena_common.mavlink_link`) and runs them in threads:
+:mod:`arena_common.gateway_commands`, :mod:`arena_common.mavlink_protocols`, :mod:`arena_common.mavlink_link`)
+and runs them in threads:
 
 - **link reader** — frames of the vehicle's system id only; answers TIMESYNC requests at once, feeds
   acknowledgements, parameter values and the vehicle state, publishes raw telemetry (rate-limited per
@@ -33,18 +34,10 @@ from arena_common import keys, px4, wire
 from arena_common.bus import Bus, Subscription
 from arena_common.config import ArenaConfig
 from arena_common.gateway_commands import CommandExecutor
-from arena_common.gateway_parts import (
-    EventSink,
-    MavCommander,
-    ParamClient,
-    SetupChecker,
-    TelemetryPublisher,
-    TimeSync,
-    VehicleState,
-    VisionSender,
-)
+from arena_common.gateway_parts import EventSink, TelemetryPublisher, TimeSync, VehicleState, VisionSender
 from arena_common.gateway_setpoints import SetpointForwarder
 from arena_common.mavlink_link import MSG, GcsForwarder, MavlinkLink, MavlinkLinkError, mavlink2
+from arena_common.mavlink_protocols import MavCommander, ParamClient, SetupChecker
 from arena_common.service import Stats
 
 __all__ = ["Gateway", "GatewayOptions"]

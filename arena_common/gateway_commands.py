@@ -45,17 +45,9 @@ from typing import Any
 
 from arena_common import px4, wire
 from arena_common.config import ArenaSpec, VehicleSpec
-from arena_common.gateway_parts import (
-    EventSink,
-    MavCommander,
-    ParamClient,
-    SetupChecker,
-    TimeSync,
-    VehicleState,
-    VisionSender,
-    param_equal,
-)
+from arena_common.gateway_parts import EventSink, TimeSync, VehicleState, VisionSender
 from arena_common.gateway_setpoints import SetpointForwarder, outside
+from arena_common.mavlink_protocols import MavCommander, ParamClient, SetupChecker, param_equal
 
 __all__ = ["CommandExecutor"]
 

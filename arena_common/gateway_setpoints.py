@@ -100,7 +100,7 @@ class SetpointForwarder:
         self.box = arena.safe_box()
         self.events = events
         self.period = 1.0 / rate
-        self.min_gap = 1.0 / max_rate
+        self.min_gap = 0.7 / max_rate  # tolerate jitter: a user streaming at max_rate is forwarded whole
         self.prestream = prestream
         self.goto_speed = min(goto_speed, arena.max_speed)
         self.goto_climb = min(goto_climb, arena.max_climb)

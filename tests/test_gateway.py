@@ -8,6 +8,7 @@ Everything the tests ask goes through the bus: commands on the queryable, state 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import select
@@ -425,3 +426,20 @@ class MavPeer:
         self._stop.set()
         self._thread.join(2.0)
         self.conn.close()
+
+
+def test_without_require_setup_the_autopilot_decides(
+    arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
+) -> None:
+    cfg = arena_config(speed=SPEED)
+    cfg = cfg.replace(vehicles={"d1": dataclasses.replace(cfg.vehicle("d1"), require_setup=False)})
+    rig = Rig(cfg, bus_factory(), params=None)  # PX4 defaults: it wants RC input to arm
+    try:
+        rig.start_gateway("d1")
+        rig.wait_ready("d1")
+        rig.wait_state("d1", lambda s: s.vis_rate > 20, 5.0, "vision flowing")
+        res = rig.cmd("d1", "arm")
+        assert res.result == "TEMPORARILY_REJECTED" and "No manual control input" in res.reason
+        assert not rig.aps["d1"].armed
+    finally:
+        rig.close()

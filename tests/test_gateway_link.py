@@ -20,7 +20,7 @@ from pymavlink import mavutil
 
 from arena_common import px4, wire
 from arena_common.gateway import GatewayOptions
-from arena_common.gateway_parts import EventSink, MavCommander, TimeSync, VisionSender
+from arena_common.gateway_parts import EventSink, TimeSync, VisionSender
 from arena_common.mavlink_link import (
     MSG,
     FrameSplitter,
@@ -29,6 +29,7 @@ from arena_common.mavlink_link import (
     MavlinkLinkError,
     mavlink2,
 )
+from arena_common.mavlink_protocols import MavCommander
 from arena_common.sim_autopilot import AutopilotLoop, SimAutopilot
 from tests.conftest import free_port, wait_for
 from tests.test_gateway import Rig, rig_factory  # noqa: F401  (the make_rig fixture)
