@@ -335,7 +335,7 @@ def test_several_computers_link_loss_and_recovery(lab: Lab, tmp_path: Path) -> N
         z = watch.z("d1")
         assert z is not None and z < -0.8, z
         pump_logs()
-        cc1_started = [line for line in logs["cc1"] if "started" in line]
+        cc1_started = [line for line in logs["cc1"] if line.startswith("[arena] started")]
 
         # Cut cc1's link: its presence vanishes within the lease (plus a report period), d2 stays served.
         lab.link("cc1", up=False)
@@ -369,7 +369,7 @@ def test_several_computers_link_loss_and_recovery(lab: Lab, tmp_path: Path) -> N
         for host in ("ground", "cc1", "cc2"):
             restarts = [line for line in logs[host] if "restarting in" in line or "restarted " in line]
             assert not restarts, f"{host}: {restarts}"
-        assert [line for line in logs["cc1"] if "started" in line] == cc1_started
+        assert [line for line in logs["cc1"] if line.startswith("[arena] started")] == cc1_started
         print(f"cc1 presence vanished {vanished_after:.2f} s after the cut (lease {LEASE_MS} ms); "
               f"back {back_after:.2f} s after the link returned")  # fmt: skip
     finally:
