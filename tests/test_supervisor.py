@@ -427,8 +427,15 @@ def test_arena_up_runs_restarts_and_stops_the_real_services(tmp_path: Path) -> N
         wait_for(
             lambda: flowing(0), timeout=90, interval=0.05, what="vision and state of d1 (the whole chain)"
         )
-        alive = bus.alive("arena/sys/alive/test/**")
-        assert "arena/sys/alive/test/supervisor" in alive and len(alive) >= len(expected) + 1, alive
+        # The supervisor's own session started before the router: it joins at its next connect retry.
+        alive = wait_for(
+            lambda: (
+                (a := bus.alive("arena/sys/alive/test/**")) and "arena/sys/alive/test/supervisor" in a and a
+            ),
+            timeout=15,
+            what="the supervisor's presence",
+        )
+        assert len(alive) >= len(expected) + 1, alive
 
         t_kill = time.time_ns()
         for pid in first.values():
@@ -460,6 +467,48 @@ def test_arena_up_runs_restarts_and_stops_the_real_services(tmp_path: Path) -> N
             proc.kill()
             proc.wait(timeout=10)
         for pid in every_pid:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("services.sim_mocap") is None, reason="services.sim_mocap not written yet"
+)
+def test_sim_world_runs_both_parts_and_stops(tmp_path: Path, router_endpoint: str) -> None:
+    """`arena sim world CONFIG`: simulated vehicles and Motive emulator, supervised; Ctrl-C ends both."""
+    path = write_config(tmp_path, router_endpoint, n_vehicles=1)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "arena_common.cli", "sim", "world", str(path), "--host", "test"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    out = Lines()
+    threading.Thread(target=lambda: [out.write(x) for x in proc.stdout or ()], daemon=True).start()
+    bus = open_bus(ZenohSpec(mode="peer", connect=(router_endpoint,)))
+    pids: list[int] = []
+    try:
+        truth = bus.subscribe(keys.truth("d1"), capacity=1)
+        wait_for(
+            lambda: truth.get(0.1) is not None, timeout=60, what="d1's true pose from the simulated world"
+        )
+        alive = {k.rsplit("/", 1)[1] for k in bus.alive("arena/sys/alive/test/**")}
+        assert {"sim_vehicle", "sim_mocap"} <= alive, alive
+        pids = [
+            int(p) for p in re.findall(r"^\[arena\] started \S+ \(pid (\d+)\)", "\n".join(out.lines), re.M)
+        ]
+        assert len(pids) == 2
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0
+        assert all(gone(p) for p in pids)
+    finally:
+        bus.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+        for pid in pids:
             try:
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
