@@ -47,7 +47,9 @@ def test_every_template_exists_and_is_hardened() -> None:
             assert re.search(rf"^{re.escape(line)}$", text, re.M), f"{name}: no {line}"
         assert re.search(r"^RestartSec=\d+", text, re.M), name
         assert re.search(
-            r"^ExecStart=@PYTHON@ -m \S+ .*--config \$\{ARENA_CONFIG\} --host \$\{ARENA_HOST\}$", text, re.M
+            r"^ExecStart=@PYTHON@ -m \S+ .*--config \$\{ARENA_CONFIG\} --host \$\{ARENA_HOST\}(@BUSARGS@)?$",
+            text,
+            re.M,
         )
         assert ("ReadWritePaths=" in text) == (name == "arena-recorder.service"), name
     assert "%i" in (TEMPLATE_DIR / "arena-gateway@.service").read_text()
@@ -70,7 +72,10 @@ def test_ground_host_units(tmp_path: Path) -> None:
     for rel, text in units.files.items():
         assert not re.search(r"@[A-Z]+@", text), f"placeholder left in {rel}"
     mocap = units.files[f"{UNITS}/arena-mocap.service"]
-    assert f"ExecStart={sys.executable} -m services.mocap_ingest --config ${{ARENA_CONFIG}}" in mocap
+    start = f"ExecStart={sys.executable} -m services.mocap_ingest --config ${{ARENA_CONFIG}}"
+    start += " --host ${ARENA_HOST}"
+    # The ground computer has an address: its peers listen there, for the other computers to reach them.
+    assert f"{start} --listen tcp/192.168.1.20:0\n" in mocap
     assert "User=pilot" in mocap and f"WorkingDirectory={tmp_path.resolve()}" in mocap
     assert "After=network-online.target arena-router.service" in mocap
     router = units.files[f"{UNITS}/arena-router.service"]
@@ -113,6 +118,12 @@ def test_companion_host_units_and_errors(tmp_path: Path) -> None:
         "Wants=arena-downsampler@c1.service arena-gateway@c1.service\n"
         in units.files[f"{UNITS}/arena.target"]
     )
+    gateway = units.files[f"{UNITS}/arena-gateway@.service"]
+    assert (
+        "--vehicle %i --config ${ARENA_CONFIG} --host ${ARENA_HOST} --listen tcp/192.168.1.31:0\n" in gateway
+    )
+    sim_units = render_systemd(config_mod.load(REPO / "deploy/sim.toml"), "sim", workdir=tmp_path).files
+    assert "--host ${ARENA_HOST}\n" in sim_units[f"{UNITS}/arena-mocap.service"]  # no address: loopback
     # A relative recordings directory resolves in the working directory.
     sim = config_mod.load(REPO / "deploy/sim.toml")
     assert not any("recorder" in f for f in render_systemd(sim, "sim", workdir=tmp_path).files)

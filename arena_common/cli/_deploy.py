@@ -35,7 +35,7 @@ from arena_common.options import (
     load_config,
 )
 from arena_common.service import Service, running
-from arena_common.supervisor import SUPERVISOR_SERVICE, Supervisor, plan, supervise
+from arena_common.supervisor import SUPERVISOR_SERVICE, Supervisor, host_options, plan, supervise
 
 REPO = Path(__file__).resolve().parents[2]
 TEMPLATE_DIR = REPO / "deploy" / "systemd"
@@ -115,7 +115,9 @@ def render_systemd(
     """
     h: HostSpec = cfg.host(host)
     user = user or getpass.getuser()
+    listen = host_options(cfg, h)
     subst = {
+        "@BUSARGS@": "".join(f" --listen {e}" for e in listen.listen) if listen is not None else "",
         "@PYTHON@": str(Path(python).absolute()),
         "@WORKDIR@": str(Path(workdir).resolve()),
         "@USER@": user,
