@@ -416,6 +416,7 @@ class Recorder:
         self._last_disk_check = -1e9
         self._armed: dict[str, bool] = {}
         self._drop_mark = time.time_ns()
+        self._last_drop_event = -1e9
 
     # -- control --------------------------------------------------------------------------------------
     def start(self, name: str | None = None) -> Path | None:
@@ -483,7 +484,16 @@ class Recorder:
 
     # -- the writer loop ------------------------------------------------------------------------------
     def write(self, sample: Sample) -> Decoded | None:
-        """Record one sample (decoded, or raw when it does not decode); returns the decoded form."""
+        """Record one sample (decoded, or raw when it does not decode); returns the decoded form.
+
+        While idle (and not watching for arming) the sample is only counted as not recorded.
+        """
+        if self.writer is None and not self.spec.auto_on_arm:
+            with self._lock:
+                if self.writer is None:
+                    if self.state == "disk_full":
+                        self.lost += 1
+                    return None
         try:
             decoded: Decoded | None = decode_sample(sample.key, sample.raw, sample.encoding)
         except PayloadError:
@@ -518,7 +528,10 @@ class Recorder:
             if self.writer is not None:
                 self.writer.add_drops(new, self._drop_mark, now)
             self._drop_mark = now
-            self.on_event(f"recorder fell behind: {new} samples dropped", 4)
+            t = self.clock()
+            if t - self._last_drop_event >= 5.0:  # once per episode, not once per loop
+                self._last_drop_event = t
+                self.on_event(f"recorder fell behind: {new} samples dropped ({total_dropped} so far)", 4)
             return new
 
     def tick(self) -> None:
@@ -1044,7 +1057,9 @@ def repair(path: str | Path, output: str | Path | None = None, *, force: bool = 
 
 # -- replay -------------------------------------------------------------------------------------------------
 
-CONTROL_KEYS = ("arena/estop", "arena/*/setpoint", "arena/sys/rec/**")
+# Left out of a replay unless asked for: they would command live vehicles (estop, setpoints) or pass
+# for the system's own state (recorder control, past services' stats).
+CONTROL_KEYS = ("arena/estop", "arena/*/setpoint", "arena/sys/**")
 
 
 @dataclass(slots=True)
@@ -1140,8 +1155,8 @@ def replay(
     """Send every matching message with ``publish(key, msgpack_bytes, zenoh_encoding)`` on its original
     schedule (by ``log_time``, divided by ``speed``), until the end (or forever with ``loop``).
 
-    Setpoints, emergency stops and recorder control are left out unless ``include_control``: replaying
-    them on a live arena would command real vehicles.
+    Setpoints, emergency stops and ``arena/sys/**`` are left out unless ``include_control``: replaying
+    them on a live arena would command real vehicles or pass for the system's current state.
     """
     if not speed > 0 or not math.isfinite(speed):
         raise RecordingError(f"replay speed must be a positive number, got {speed}")

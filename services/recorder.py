@@ -76,16 +76,23 @@ def main(
             config_text=config_text,
             on_event=on_event,
         )
+        exprs = key_exprs(cfg)
+        for i, a in enumerate(exprs):
+            for b in exprs[i + 1 :]:
+                if zenoh.KeyExpr(a).intersects(zenoh.KeyExpr(b)):
+                    svc.log.warning("keys %r and %r overlap: samples on both are recorded twice", a, b)
         queue: Channel[Received[Any]] = Channel(QUEUE_CAPACITY, ring=False)
-        subs = [Subscription(svc.bus, expr, None, queue, keep_raw=False) for expr in key_exprs(cfg)]
-        svc.bus.serve(keys.rec_control(svc.host), rec.handle)
+        subs = [Subscription(svc.bus, expr, None, queue, keep_raw=False) for expr in exprs]
         rec.start(name)
+        svc.bus.serve(keys.rec_control(svc.host), rec.handle)  # answers once the first file is open
         try:
             while not svc.stopped:
                 item = queue.get(0.05)
                 batch = [item, *queue.drain()] if item is not None else []
                 for it in batch:
-                    if rec.write(Sample(it.key, it.raw, it.encoding, it.t_recv)) is None:
+                    before = rec.undecodable
+                    rec.write(Sample(it.key, it.raw, it.encoding, it.t_recv))
+                    if rec.undecodable != before:
                         svc.reject("undecodable", f"{it.key}: not a valid payload ({it.encoding})")
                     svc.stats.count("in")
                 new = rec.note_drops(queue.dropped)

@@ -278,6 +278,27 @@ def test_rec_start_stop_and_status_by_command(
     assert res.exit_code == 1 and "no recorder answers" in res.output
 
 
+def test_two_recorders_answer_one_start(
+    tmp_path: Path,
+    arena_config: Callable[..., ArenaConfig],
+    bus_factory: Callable[[], Bus],
+    router_endpoint: str,
+) -> None:
+    """Recorders on several hosts at once: one `rec start` reaches all; file names carry the host."""
+    cfg = arena_config()
+    bus = bus_factory()
+    out = tmp_path / "rec"
+    with recorder_thread(cfg, out, host="ra"), recorder_thread(cfg, out, host="rb"):
+        wait_ready(bus, "ra")
+        wait_ready(bus, "rb")
+        res = runner.invoke(app, ["rec", "start", "both", "-e", router_endpoint])
+        assert res.exit_code == 0, res.output
+        assert "ra: ACCEPTED recording to" in res.output and "rb: ACCEPTED recording to" in res.output
+        assert {ping(bus, h)["file"].rsplit("/", 1)[-1].split("_")[1] for h in ("ra", "rb")} == {"ra", "rb"}
+    names = sorted(p.name.rsplit("_", 1)[0] for p in out.iterdir())
+    assert names == ["both_ra", "both_rb", "rec_ra", "rec_rb"]
+
+
 def test_auto_on_arm_starts_a_file(
     tmp_path: Path, arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
 ) -> None:

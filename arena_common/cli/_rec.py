@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import threading
 import time
 from pathlib import Path
@@ -100,6 +101,7 @@ def _control(
                 encoding=zenoh.Encoding(command.encoding()),
                 timeout=timeout,
                 target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,  # every recorder's answer, not the latest
                 congestion_control=zenoh.CongestionControl.BLOCK,
             )
             for reply in replies:
@@ -115,9 +117,9 @@ def _control(
         typer.echo(f"error: no recorder answers on {key}", err=True)
         raise typer.Exit(1)
     failed = False
-    for src, res in sorted(results, key=lambda r: r[0]):
-        host = src.rsplit("/", 1)[-1]
+    for src, res in sorted(results, key=lambda r: str(r[1].value.get("host", r[0]))):
         v = res.value
+        host = str(v.get("host") or src.rsplit("/", 1)[-1])
         if op == "ping":
             typer.echo(
                 f"{host}: {v.get('state')} {v.get('file') or '-'} — {v.get('file_messages', 0)} messages in "
@@ -202,7 +204,7 @@ def replay_cmd(
     loop: Annotated[bool, typer.Option("--loop", help="Start again at the end, until Ctrl-C.")] = False,
     include_control: Annotated[
         bool,
-        typer.Option("--all", help="Also setpoints, estop and recorder control (commands live vehicles!)."),
+        typer.Option("--all", help="Also setpoints, estop and arena/sys/** (commands live vehicles!)."),
     ] = False,
     start_delay: Annotated[
         float,
@@ -243,6 +245,9 @@ def replay_cmd(
                     pubs[(publish_key, ch.zenoh_encoding)] = _declare(
                         svc.bus.session, publish_key, ch.zenoh_encoding
                     )
+            # Everything allocated so far is long-lived: keep the collector from scanning it mid-schedule.
+            gc.collect()
+            gc.freeze()
             deadline = time.monotonic() + max(0.0, start_delay)
             while time.monotonic() < deadline and not any(p.matching_status.matching for p in pubs.values()):
                 if svc.sleep(0.02):
