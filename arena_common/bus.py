@@ -396,8 +396,9 @@ class Queryable:
                         result = self.handler(key, command)
                     except Exception as exc:  # a handler bug must not kill the server
                         result = wire.CommandResult(False, "ERROR", f"{type(exc).__name__}: {exc}")
+                # Reply on our own key when concrete, so a wildcard query learns who answered.
                 query.reply(
-                    key,
+                    key if "*" in self.key else self.key,
                     result.replace(t=wire.now_ns()).encode(),
                     encoding=zenoh.Encoding(wire.CommandResult.encoding()),
                 )
