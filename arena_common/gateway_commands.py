@@ -146,6 +146,11 @@ class CommandExecutor:
         op = self._ops.get(cmd.op)
         if op is None:
             result = wire.CommandResult(False, "ERROR", f"{cmd.op!r} is not a vehicle operation")
+        elif cmd.op != "ping" and not self.commander.link.can_send():
+            heard = (
+                "link lost: no heartbeat from the autopilot" if self.state.hb_count else "nothing heard yet"
+            )
+            result = _refused(f"no link to the autopilot ({heard})")
         else:
             try:
                 result = op(cmd.args, deadline)

@@ -19,11 +19,13 @@ from typing import Any
 
 from arena_common import keys, px4, wire
 from arena_common.bus import Bus, Channel, Publisher
+from arena_common.errors import ArenaError
 from arena_common.mavlink_link import MavlinkLink
 from arena_common.service import Stats
 
 __all__ = [
     "EventSink",
+    "GatewayError",
     "TelemetryPublisher",
     "TimeSync",
     "VehicleState",
@@ -32,6 +34,12 @@ __all__ = [
 ]
 
 MAV_AUTOPILOT_INVALID = 8
+
+
+class GatewayError(ArenaError, ValueError):
+    """A gateway part configured with a value it cannot use."""
+
+
 _LANDED = ("undefined", "on_ground", "in_air", "takeoff", "landing")
 _STATUS_FLAGS = {
     px4.MAV_STATE_CRITICAL: "failsafe",
@@ -346,7 +354,9 @@ class VisionSender:
         stats: Stats | None = None,
     ) -> None:
         if message not in ("odometry", "vision_position_estimate"):
-            raise ValueError(f"vision message must be odometry or vision_position_estimate, not {message!r}")
+            raise GatewayError(
+                f"vision message must be odometry or vision_position_estimate, not {message!r}"
+            )
         self.link = link
         self.max_age_ns = int(max_pose_age * 1e9)
         self.message = message

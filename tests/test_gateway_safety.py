@@ -82,9 +82,12 @@ def test_user_setpoints_lease_expiry_lands_and_offboard_never_reengages(make_rig
 def test_refused_setpoints_never_reach_the_vehicle(make_rig: Callable[..., Rig]) -> None:
     rig = make_rig(simulate=False, start=False)
     port = int(rig.cfg.vehicle("d1").mavlink.rsplit(":", 1)[1])
+    rig.start_gateway("d1")
+    wait_for(lambda: rig.cmd("d1", "ping", timeout=1.0).ok, 10.0, what="gateway answers")
+    res = rig.cmd("d1", "land")
+    assert res.result == "REFUSED" and "no link to the autopilot (nothing heard yet)" in res.reason
     vehicle = MavPeer(f"udpout:127.0.0.1:{port}", 1)  # records every byte the gateway sends
     try:
-        rig.start_gateway("d1")
         rig.wait_ready("d1")
         pub = rig.bus.stream_publisher(keys.setpoint("d1"), wire.Setpoint)
         now = wire.now_ns
