@@ -494,8 +494,14 @@ def test_sim_world_runs_both_parts_and_stops(tmp_path: Path, router_endpoint: st
         wait_for(
             lambda: truth.get(0.1) is not None, timeout=60, what="d1's true pose from the simulated world"
         )
-        alive = {k.rsplit("/", 1)[1] for k in bus.alive("arena/sys/alive/test/**")}
-        assert {"sim_vehicle", "sim_mocap"} <= alive, alive
+        wait_for(
+            lambda: (
+                {"sim_vehicle", "sim_mocap"}
+                <= {k.rsplit("/", 1)[1] for k in bus.alive("arena/sys/alive/test/**")}
+            ),
+            timeout=30,
+            what="both parts' presence",
+        )
         pids = [
             int(p) for p in re.findall(r"^\[arena\] started \S+ \(pid (\d+)\)", "\n".join(out.lines), re.M)
         ]
