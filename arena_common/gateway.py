@@ -379,6 +379,7 @@ class Gateway:
             item = sub.get(0.2)
             if item is None:
                 continue
+            self.stats.count("in")
             if item.error is not None or item.payload is None:
                 self.stats.reject("vision: undecodable")
                 continue

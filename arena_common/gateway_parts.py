@@ -421,6 +421,7 @@ class VisionSender:
         self.last_sent_mono = mono
         self._times.append(mono)
         self.stats.count("vision")
+        self.stats.count("out")
         return None
 
     def rate(self, now: float) -> float:

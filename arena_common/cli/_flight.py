@@ -53,20 +53,19 @@ class Snapshot:
 
     def render(self) -> Table:
         alive = self.bus.alive(keys.ALIVE_ALL, 0.5)
-        services = Table(title="services", expand=False)
-        for col in ("host", "service", "pid", "in/s", "out/s", "rejected", "cpu %", "rss MB", "up s"):
+        services = Table(title="services", title_justify="left")
+        for col in ("host", "service", "in/s", "out/s", "rej", "cpu %", "MB", "up s"):
             services.add_column(col, justify="right" if col not in ("host", "service") else "left")
         for key in alive:
             host, service = key.split("/")[-2:]
             st = self.stats.get(f"{host}/{service}")
             if st is None:
-                services.add_row(host, service, "", "", "", "", "", "", "")
+                services.add_row(host, service, "", "", "", "", "", "")
                 continue
             rej = sum(int(v) for v in st.rejected.values())
             services.add_row(
                 host,
                 service,
-                str(st.pid),
                 f"{st.rates.get('in', 0):.0f}",
                 f"{st.rates.get('out', 0):.0f}",
                 f"[red]{rej}[/]" if rej else "0",
@@ -74,20 +73,16 @@ class Snapshot:
                 f"{st.rss / 1e6:.0f}",
                 f"{st.up:.0f}",
             )
-        vehicles = Table(title="vehicles")
+        vehicles = Table(title="vehicles", title_justify="left")
         for col in (
             "vehicle",
             "link",
             "armed",
             "mode",
             "landed",
-            "north",
-            "east",
-            "down",
-            "battery",
-            "vision Hz",
-            "vision age",
-            "fused",
+            "N E D [m]",
+            "bat",
+            "vision",
             "rtt ms",
             "failsafes",
         ):
@@ -97,19 +92,19 @@ class Snapshot:
             age = time.monotonic() - self.state_time[name]
             p = s.p or (math.nan, math.nan, math.nan)
             link = "[green]ok[/]" if s.link and age < 2 else "[red]lost[/]"
+            vis_age = "" if s.vis_age is None else f" {1000 * s.vis_age:.0f}ms"
+            vision = f"{s.vis_rate:.0f}Hz{vis_age} " + (
+                "[green]fused[/]" if s.vis_fused else "[red]not fused[/]"
+            )
             vehicles.add_row(
                 name,
                 link,
-                "[yellow]ARMED[/]" if s.armed else "disarmed",
+                "[yellow]ARMED[/]" if s.armed else "no",
                 s.mode,
                 s.landed,
-                f"{p[0]:+.2f}",
-                f"{p[1]:+.2f}",
-                f"{p[2]:+.2f}",
-                "" if s.bat is None else f"{100 * s.bat:.0f} %",
-                f"{s.vis_rate:.0f}",
-                "" if s.vis_age is None else f"{1000 * s.vis_age:.0f} ms",
-                "yes" if s.vis_fused else "[red]no[/]",
+                f"{p[0]:+.2f} {p[1]:+.2f} {p[2]:+.2f}",
+                "" if s.bat is None else f"{100 * s.bat:.0f}%",
+                vision,
                 "" if s.rtt is None else f"{1000 * s.rtt:.1f}",
                 ", ".join(s.fs),
             )
