@@ -36,6 +36,7 @@ class BusOptions:
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
     zconfig: str | None = None  # a Zenoh JSON5 config file, applied first
+    address: str = ""  # this host's address: a peer with no listen endpoint listens there (else loopback)
     settings: dict[str, Any] = field(default_factory=dict)  # raw "path": value overrides, applied last
 
 
@@ -55,9 +56,10 @@ def zenoh_config(spec: ZenohSpec | None = None, options: BusOptions | None = Non
     if mode == "router" and not listen:
         listen = list(spec.router_listen)
     if mode == "peer" and not listen:
-        # Peers reach each other directly on this host and through the router elsewhere; never listen
-        # on every interface unless the config says so.
-        listen = ["tcp/127.0.0.1:0"]
+        # Peers on different hosts only talk over direct links, so a peer listens on its host's address
+        # (hosts.<name>.address); with none, on loopback only — never on every interface unasked.
+        addr = options.address or "127.0.0.1"
+        listen = [f"tcp/[{addr}]:0" if ":" in addr else f"tcp/{addr}:0"]
     settings: dict[str, Any] = {
         "mode": mode,
         "scouting/multicast/enabled": spec.multicast_scouting,

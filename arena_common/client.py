@@ -45,6 +45,7 @@ from arena_common.errors import (
     VehicleNotPresent,
 )
 from arena_common.frames import quat_to_euler
+from arena_common.service import host_bus_options, host_name
 
 
 def _src() -> str:
@@ -392,6 +393,8 @@ class Arena:
 
     ``config`` is a config file path or :class:`~arena_common.config.ArenaConfig` (its Zenoh section
     says how to reach the bus); ``connect`` endpoints override it (``["tcp/192.168.1.20:7447"]``).
+    ``host`` names this computer in the config (default: the hostname); a laptop the config does not
+    name should use ``mode="client"`` so that its traffic goes through the router.
     """
 
     def __init__(
@@ -402,15 +405,15 @@ class Arena:
         mode: str | None = None,
         bus: Bus | None = None,
         name: str = "",
+        host: str | None = None,
     ) -> None:
         if isinstance(config, (str, Path)):
             config = config_mod.load(config)
         self.config = config
         self.src = name or _src()
         self._own_bus = bus is None
-        self.bus = bus or open_bus(
-            config.zenoh if config else ZenohSpec(), BusOptions(mode=mode, connect=tuple(connect))
-        )
+        options = host_bus_options(config, host_name(host), BusOptions(mode=mode, connect=tuple(connect)))
+        self.bus = bus or open_bus(config.zenoh if config else ZenohSpec(), options)
         self._vehicles: dict[str, Vehicle] = {}
         self._channel: Channel[Received[Any]] = Channel(4096, ring=True)
         self._lock = threading.Lock()

@@ -150,6 +150,22 @@ class RecorderSpec:
 
 
 @dataclass(frozen=True, slots=True)
+class SecuritySpec:
+    """The ``[security]`` table of the arena config.  ``{host}`` in a path is replaced by the host name."""
+
+    enabled: bool = False
+    users_file: str = ""  # the router's "user:password" lines, one user per host
+    password_file: str = ""  # each host's own password (its user name is the host name)
+    command_hosts: tuple[str, ...] = ()  # hosts that may send commands; empty: every host
+    acl: bool = True  # enforce key ownership and command rights on the router
+    tls: bool = False  # require tls/ on every endpoint that is not loopback
+    ca: str = ""  # the lab CA certificate (PEM)
+    cert: str = ""  # this host's certificate (PEM), common name = host name
+    key: str = ""  # this host's private key (PEM)
+    mtls: bool = True  # the router asks for client certificates (identity by certificate)
+
+
+@dataclass(frozen=True, slots=True)
 class ArenaConfig:
     """A whole arena, as one TOML file describes it."""
 
@@ -162,6 +178,7 @@ class ArenaConfig:
     vehicles: Mapping[str, VehicleSpec]
     sim: SimSpec
     recorder: RecorderSpec
+    security: SecuritySpec = field(default_factory=SecuritySpec)
 
     def vehicle(self, name: str) -> VehicleSpec:
         """A vehicle by name; :class:`ConfigError` listing the known names if absent."""
@@ -417,8 +434,28 @@ def parse(data: Mapping[str, Any], path: str = "<config>") -> ArenaConfig:
         auto_on_arm=rr.boolean("auto_on_arm", False),
     )
     rr.done()
+
+    sc = root.table("security")
+    security = SecuritySpec(
+        enabled=sc.boolean("enabled", False),
+        users_file=sc.string("users_file", ""),
+        password_file=sc.string("password_file", ""),
+        command_hosts=sc.strings("command_hosts", ()),
+        acl=sc.boolean("acl", True),
+        tls=sc.boolean("tls", False),
+        ca=sc.string("ca", ""),
+        cert=sc.string("cert", ""),
+        key=sc.string("key", ""),
+        mtls=sc.boolean("mtls", True),
+    )
+    for cmd_host in security.command_hosts:
+        if cmd_host not in hosts:
+            raise sc.fail(
+                "command_hosts", f"names of configured hosts ({', '.join(hosts) or 'none'})", cmd_host
+            )
+    sc.done()
     root.done()
-    return ArenaConfig(path, arena, calibration, mocap, zenoh, hosts, vehicles, sim, recorder)
+    return ArenaConfig(path, arena, calibration, mocap, zenoh, hosts, vehicles, sim, recorder, security)
 
 
 def load(path: str | Path) -> ArenaConfig:

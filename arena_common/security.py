@@ -27,32 +27,15 @@ import json
 import os
 import secrets
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from arena_common.config import ArenaConfig
+from arena_common.config import ArenaConfig, SecuritySpec
 from arena_common.errors import ArenaError
 
 
 class SecurityError(ArenaError):
     """Security settings that cannot work (a missing file, a plain endpoint crossing the network…)."""
-
-
-@dataclass(frozen=True, slots=True)
-class SecuritySpec:
-    """The ``[security]`` table of the arena config.  ``{host}`` in a path is replaced by the host name."""
-
-    enabled: bool = False
-    users_file: str = ""  # the router's "user:password" lines, one user per host
-    password_file: str = ""  # each host's own password (its user name is the host name)
-    command_hosts: tuple[str, ...] = ()  # hosts that may send commands; empty: every host
-    acl: bool = True  # enforce key ownership and command rights on the router
-    tls: bool = False  # require tls/ on every endpoint that is not loopback
-    ca: str = ""  # the lab CA certificate (PEM)
-    cert: str = ""  # this host's certificate (PEM), common name = host name
-    key: str = ""  # this host's private key (PEM)
-    mtls: bool = True  # the router asks for client certificates (identity by certificate)
 
 
 def _path(template: str, host: str) -> str:

@@ -26,10 +26,10 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
-from arena_common import keys, wire
+from arena_common import keys, security, wire
 from arena_common.bus import Bus, BusOptions, open_bus
 from arena_common.config import ArenaConfig
 
@@ -66,6 +66,11 @@ class Stats:
         """Add ``n`` to counter ``name``."""
         with self._lock:
             self.counts[name] = self.counts.get(name, 0) + n
+
+    def set(self, name: str, value: int) -> None:
+        """Set counter ``name`` to a level (children alive, clients connected…)."""
+        with self._lock:
+            self.counts[name] = value
 
     def reject(self, reason: str) -> None:
         """Count one rejected input under ``reason``."""
@@ -175,6 +180,20 @@ class Service:
         return self.stop.wait(seconds)
 
 
+def host_bus_options(cfg: ArenaConfig | None, host: str, options: BusOptions | None) -> BusOptions:
+    """The bus options of a session on ``host``: its address to listen on, its security settings."""
+    options = options or BusOptions()
+    if cfg is None:
+        return options
+    spec = cfg.hosts.get(host)
+    if spec is not None and spec.address and not options.address:
+        options = replace(options, address=spec.address)
+    extra = security.session_settings(cfg, cfg.security, host)
+    if extra:
+        options = replace(options, settings={**extra, **options.settings})
+    return options
+
+
 @contextmanager
 def running(
     name: str,
@@ -190,8 +209,11 @@ def running(
     """Run a service: open the bus, declare presence, publish stats, stop cleanly on SIGINT/SIGTERM."""
     stop = stop or threading.Event()
     own_bus = bus is None
-    the_bus = open_bus(cfg.zenoh if cfg else None, options) if bus is None else bus
-    svc = Service(name, cfg, the_bus, host_name(host), vehicle, stop)
+    host = host_name(host)
+    the_bus = (
+        open_bus(cfg.zenoh if cfg else None, host_bus_options(cfg, host, options)) if bus is None else bus
+    )
+    svc = Service(name, cfg, the_bus, host, vehicle, stop)
     previous: dict[signal.Signals, Any] = {}
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):

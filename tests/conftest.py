@@ -66,7 +66,12 @@ def bus_factory(router_endpoint: str) -> Iterator[Callable[[], Bus]]:
 
 
 def write_config(
-    tmp_path: Path, router_endpoint: str, n_vehicles: int = 1, extra: str = "", **sim: Any
+    tmp_path: Path,
+    router_endpoint: str,
+    n_vehicles: int = 1,
+    extra: str = "",
+    services: tuple[str, ...] = ("sim", "mocap", "transform"),
+    **sim: Any,
 ) -> Path:
     """Write an arena config whose every port is free and private to this test."""
     cmd_port, data_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
@@ -83,7 +88,7 @@ def write_config(
         f'connect = ["{router_endpoint}"]',
         f'router_listen = ["{router_endpoint}"]',
         "[hosts.test]",
-        'services = ["sim", "mocap", "transform"]',
+        "services = [" + ", ".join(f'"{x}"' for x in services) + "]",
         "vehicles = [" + ", ".join(f'"d{i + 1}"' for i in range(n_vehicles)) + "]",
     ]
     for i in range(n_vehicles):

@@ -18,7 +18,19 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-GROUPS = ("_core", "_sim", "_mocap", "_calibrate", "_services", "_flight", "_demo", "_px4", "_rec", "_deploy", "_bench")
+GROUPS = (
+    "_core",
+    "_sim",
+    "_mocap",
+    "_calibrate",
+    "_services",
+    "_flight",
+    "_demo",
+    "_px4",
+    "_rec",
+    "_deploy",
+    "_bench",
+)
 
 for _name in GROUPS:
     try:

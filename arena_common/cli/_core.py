@@ -6,13 +6,14 @@ import json
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from arena_common import config as config_mod
-from arena_common import keys, wire
+from arena_common import keys, security, wire
 from arena_common.bus import Received
 from arena_common.errors import ConfigError
 from arena_common.options import (
@@ -25,7 +26,7 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.service import running, setup_logging
+from arena_common.service import host_name, running, setup_logging
 
 config_app = typer.Typer(help="Check arena config files.", no_args_is_help=True)
 
@@ -133,13 +134,8 @@ def router(
     cfg = load_config(config, required=False)
     setup_logging()
     opts = bus_options("router", None, listen or list(cfg.zenoh.router_listen if cfg else ()), zconfig)
-    opts = type(opts)(
-        mode="router",
-        connect=(),
-        listen=opts.listen,
-        zconfig=opts.zconfig,
-        settings={"connect/endpoints": []},
-    )
+    extra = security.router_settings(cfg, cfg.security, host_name(host)) if cfg else {}
+    opts = replace(opts, mode="router", connect=(), settings={"connect/endpoints": [], **extra})
     with running("router", cfg, opts, host=host) as svc:
         svc.log.info("routing on %s", ", ".join(opts.listen) or "default endpoints")
         while not svc.sleep(1.0):
