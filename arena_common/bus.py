@@ -291,31 +291,43 @@ class Bus:
         """Answer :class:`~arena_common.wire.Command` queries on ``key`` with ``handler`` in own threads."""
         return self._keep(Queryable(self, key, handler, workers))
 
-    def request(self, key: str, command: wire.Command, timeout: float | None = None) -> wire.CommandResult:
+    def request(
+        self, key: str, command: wire.Command, timeout: float | None = None, *, discovery: float = 2.0
+    ) -> wire.CommandResult:
         """Send a command and wait for its :class:`~arena_common.wire.CommandResult`.
 
-        A key nobody serves answers at once with ``TIMEOUT`` ("no one answers"), so callers can tell an
-        absent vehicle from a slow one.
+        A query that no queryable matches ends at once.  A session that has just opened may not yet know
+        the routes to a server that exists, so such an empty answer is retried for up to ``discovery``
+        seconds; a query that reached a server is never sent twice.  ``TIMEOUT`` then means nobody
+        answered: callers tell an absent vehicle from a slow one by its presence token.
         """
         timeout = command.timeout if timeout is None else timeout
-        replies = self.session.get(
-            key,
-            payload=command.encode(),
-            encoding=zenoh.Encoding(command.encoding()),
-            timeout=timeout + 0.5,
-            target=zenoh.QueryTarget.BEST_MATCHING,
-            congestion_control=zenoh.CongestionControl.BLOCK,
-        )
-        for reply in replies:
-            if reply.ok is not None:
-                try:
-                    return wire.CommandResult.decode(reply.ok.payload.to_bytes(), key)
-                except PayloadError as exc:
-                    return wire.CommandResult(False, "ERROR", f"bad reply: {exc}")
-            err = reply.err
-            text = err.payload.to_string() if err is not None else "unknown error"
-            return wire.CommandResult(False, "ERROR", text)
-        return wire.CommandResult(False, "TIMEOUT", f"no answer on {key} within {timeout:.1f} s")
+        start = time.monotonic()
+        payload = command.encode()
+        while True:
+            sent = time.monotonic()
+            replies = self.session.get(
+                key,
+                payload=payload,
+                encoding=zenoh.Encoding(command.encoding()),
+                timeout=max(timeout - (sent - start), 0.05) + 0.5,
+                target=zenoh.QueryTarget.BEST_MATCHING,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            for reply in replies:
+                if reply.ok is not None:
+                    try:
+                        return wire.CommandResult.decode(reply.ok.payload.to_bytes(), key)
+                    except PayloadError as exc:
+                        return wire.CommandResult(False, "ERROR", f"bad reply: {exc}")
+                err = reply.err
+                text = err.payload.to_string() if err is not None else "unknown error"
+                return wire.CommandResult(False, "ERROR", text)
+            now = time.monotonic()
+            unrouted = now - sent < 0.25
+            if not unrouted or now - start >= min(discovery, timeout):
+                return wire.CommandResult(False, "TIMEOUT", f"no answer on {key} within {now - start:.1f} s")
+            time.sleep(0.1)
 
     # -- presence -----------------------------------------------------------------------------------
     def token(self, key: str) -> zenoh.LivelinessToken:

@@ -174,3 +174,18 @@ def test_user_program_killed_mid_flight_lands_by_itself(sim_arena: tuple[Path, A
         if user.poll() is None:
             user.kill()
             user.wait(5)
+
+
+def test_readme_program(sim_arena: tuple[Path, Arena]) -> None:
+    """The program in the README's quick start runs as written (config path aside)."""
+    path, arena = sim_arena
+    text = (REPO / "README.md").read_text()
+    block = text.split("```python\n", 1)[1].split("```", 1)[0]
+    program = block.replace('"deploy/sim.toml"', repr(str(path)))
+    run = subprocess.run(
+        [sys.executable, "-c", program], capture_output=True, text=True, timeout=120, cwd=REPO
+    )
+    assert run.returncode == 0, run.stderr
+    _on_ground(arena, "d1")
+    p = arena.vehicle("d1").position
+    assert p is not None and p[0] > 1.2  # flew north from the goto point at (1.0, 0.5)
