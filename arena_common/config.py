@@ -113,6 +113,7 @@ class VehicleSpec:
     vision_message: str = "odometry"
     require_setup: bool = True
     gcs: str = ""
+    signing_key_file: str = ""  # MAVLink 2 signing: a file holding the 32-byte secret key as 64 hex digits
     sim: SimVehicleSpec = field(default_factory=SimVehicleSpec)
 
     def sim_mavlink(self) -> str:
@@ -319,6 +320,7 @@ def _vehicle(r: _Reader, name: str) -> VehicleSpec:
         vision_message=r.string("vision_message", "odometry", ("odometry", "vision_position_estimate")),
         require_setup=r.boolean("require_setup", True),
         gcs=r.string("gcs", ""),
+        signing_key_file=r.string("signing_key_file", ""),
         sim=sim,
     )
     r.done()
