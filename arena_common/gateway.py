@@ -19,10 +19,22 @@ and runs them in threads:
 
 We speak as ``source_system`` (245 by default: not QGroundControl's 255) and component
 MAV_COMP_ID_ONBOARD_COMPUTER (191), and always address the configured ``system_id``, never 0.
+
+When the vehicle's config names a ``signing_key_file``, the link uses MAVLink 2 signing
+(:mod:`arena_common.signing`): everything we send is signed (link id 0), and every frame of the vehicle
+must be signed with the same key and carry a fresh timestamp, except RADIO_STATUS; refused frames are
+counted as rejects (``mavlink: unsigned``, ``mavlink: bad signature``, ``mavlink: replayed``…) and
+reported in a ``link`` event (``data.signing``: the reasons) at most every 10 s.  Frames forwarded from a
+ground station go out as they are.
+
+Whenever the link comes up and after an autopilot reboot, the gateway sends SET_GPS_GLOBAL_ORIGIN
+(``GatewayOptions.origin``, (0, 0, 0) by default) until the autopilot confirms it, so that PX4 without GPS
+has the global reference its AUTO modes need.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import threading
@@ -34,11 +46,19 @@ from arena_common import keys, px4, wire
 from arena_common.bus import Bus, Subscription
 from arena_common.config import ArenaConfig
 from arena_common.gateway_commands import CommandExecutor
-from arena_common.gateway_parts import EventSink, TelemetryPublisher, TimeSync, VehicleState, VisionSender
+from arena_common.gateway_parts import (
+    EventSink,
+    GlobalOrigin,
+    TelemetryPublisher,
+    TimeSync,
+    VehicleState,
+    VisionSender,
+)
 from arena_common.gateway_setpoints import SetpointForwarder
-from arena_common.mavlink_link import MSG, GcsForwarder, MavlinkLink, MavlinkLinkError, mavlink2
+from arena_common.mavlink_link import MSG, Frame, GcsForwarder, MavlinkLink, MavlinkLinkError, mavlink2
 from arena_common.mavlink_protocols import MavCommander, ParamClient, SetupChecker
 from arena_common.service import Stats
+from arena_common.signing import GATEWAY_UNSIGNED, LinkSigning, vehicle_key
 
 __all__ = ["Gateway", "GatewayOptions"]
 
@@ -67,6 +87,8 @@ class GatewayOptions:
     allow_gcs_manual: bool = False  # forward RC_CHANNELS_OVERRIDE / MANUAL_CONTROL from the GCS
     check_at_start: bool = True  # read the arena parameters whenever the link comes up
     gcs: str | None = None  # overrides the vehicle's `gcs` connection string when not None
+    # EKF global origin (lat deg, lon deg, alt m AMSL) sent with SET_GPS_GLOBAL_ORIGIN; None: never sent
+    origin: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
 
 
 class Gateway:
@@ -92,12 +114,25 @@ class Gateway:
         self.options = o = options or GatewayOptions()
         self.stats = stats or Stats()
         self.log = log or logging.getLogger(f"arena.gateway.{v.name}")
+        key = vehicle_key(cfg, v.name)  # SigningError (a ConfigError) for a bad key file
+        self.signing = LinkSigning(key, allow_unsigned=GATEWAY_UNSIGNED) if key is not None else None
         self.link = MavlinkLink(
-            v.mavlink, v.system_id, source_system=o.source_system, source_component=o.source_component
+            v.mavlink,
+            v.system_id,
+            source_system=o.source_system,
+            source_component=o.source_component,
+            signing=self.signing,
+            on_reject=self._rejected,
         )
+        self._rejects: collections.Counter[tuple[str, str, int]] = collections.Counter()
+        self._rejects_report = 0.0
         self._event_pub = bus.command_publisher(keys.events(v.name), wire.Event) if bus is not None else None
         self.events = EventSink(self._event_pub.put if self._event_pub is not None else None, self.log)
         self.state = VehicleState(v.system_id, self.events, o.link_timeout)
+        self.origin = (
+            GlobalOrigin(self.link, v.system_id, o.origin, self.events) if o.origin is not None else None
+        )
+        self._origin_wanted = False
         self.timesync = TimeSync(self.link)
         self.vision = VisionSender(
             self.link,
@@ -152,6 +187,8 @@ class Gateway:
             MSG["COMMAND_ACK"]: self.commander.on_ack,
             MSG["PARAM_VALUE"]: self.params.on_param_value,
         }
+        if self.origin is not None:
+            self._handlers[MSG["GPS_GLOBAL_ORIGIN"]] = self.origin.on_gps_global_origin
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._state_pub = bus.stream_publisher(keys.state(v.name), wire.State) if bus is not None else None
@@ -185,12 +222,13 @@ class Gateway:
         if self.gcs is not None:
             self._thread(self._gcs_loop, "gcs")
         self.log.info(
-            "gateway for %s: %s, system %d, we are %d/%d",
+            "gateway for %s: %s, system %d, we are %d/%d, %s",
             self.name,
             self.spec.mavlink,
             self.spec.system_id,
             self.options.source_system,
             self.options.source_component,
+            f"MAVLink 2 signing with key {self.signing.key.fingerprint}" if self.signing else "unsigned",
         )
         return self
 
@@ -268,6 +306,12 @@ class Gateway:
             self.events.emit(
                 "link", f"re-opening {self.spec.mavlink}: {'ok' if ok else 'failed'}", 5, every=10.0
             )
+        if self.origin is not None and self.state.link:
+            if self._origin_wanted:
+                self._origin_wanted = False
+                self.origin.request(now)
+            else:
+                self.origin.supervise(now)
         if self._check_wanted and self.state.link and not self._checking.locked():
             self._check_wanted = False
             threading.Thread(target=self._background_check, name=f"gw-{self.name}-check", daemon=True).start()
@@ -279,14 +323,44 @@ class Gateway:
                 self._check_wanted = True  # nothing answered: try again later
 
     def _link_changed(self, up: bool) -> None:
+        if up:
+            self._origin_wanted = True
         if up and self.options.check_at_start:
             self._check_wanted = True
 
     def _rebooted(self) -> None:
+        self._origin_wanted = True
         self.timesync.reset()
         self.setup.ok = None
         if self.options.check_at_start:
             self._check_wanted = True
+
+    def _rejected(self, reason: str, frame: Frame) -> None:
+        """A frame of the vehicle failed the signature check (reader thread)."""
+        self.stats.reject(f"mavlink: {reason}")
+        spec = mavlink2.mavlink_map.get(frame.msgid)
+        self._rejects[(reason, spec.msgname if spec is not None else str(frame.msgid), frame.compid)] += 1
+        now = time.monotonic()
+        if now < self._rejects_report:
+            return
+        self._rejects_report = now + 10.0
+        total = sum(self._rejects.values())
+        reasons: dict[str, int] = {}
+        for (r, _, _), n in self._rejects.items():
+            reasons[r] = reasons.get(r, 0) + n
+        detail = ", ".join(
+            f"{r} {name} (component {c}) ×{n}" for (r, name, c), n in self._rejects.most_common(4)
+        )
+        self._rejects.clear()
+        fingerprint = self.signing.key.fingerprint if self.signing is not None else "?"
+        self.events.emit(
+            "link",
+            f"signing: dropped {total} frame(s) of system {self.spec.system_id}: {detail}; the vehicle must "
+            f"sign with the key {fingerprint} (PX4: MAV_SIGN_CFG and its key)",
+            4,
+            dropped=total,
+            signing=reasons,
+        )
 
     def _mode_changed(self, old: str, new: str) -> None:
         if old == "OFFBOARD" and new != "OFFBOARD":

@@ -26,10 +26,12 @@ from arena_common.service import Stats
 __all__ = [
     "EventSink",
     "GatewayError",
+    "GlobalOrigin",
     "TelemetryPublisher",
     "TimeSync",
     "VehicleState",
     "VisionSender",
+    "parse_origin",
     "yaw_of",
 ]
 
@@ -330,6 +332,114 @@ class TimeSync:
         """Forget the measurements (the autopilot rebooted: its clock restarted)."""
         self._samples.clear()
         self.offset_s = None
+
+
+# ------------------------------------------------------------------------------------------ origin
+def parse_origin(text: str) -> tuple[float, float, float] | None:
+    """``"LAT,LON,ALT"`` (degrees, degrees, metres above mean sea level) or ``"off"`` (None)."""
+    if text.strip().lower() in ("off", "none", "no"):
+        return None
+    parts = text.split(",")
+    try:
+        lat, lon, alt = (float(p) for p in parts)
+    except ValueError:
+        raise GatewayError(
+            f"origin must be LAT,LON,ALT (degrees, degrees, metres) or off, got {text!r}"
+        ) from None
+    return check_origin((lat, lon, alt))
+
+
+def check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
+    """A valid (lat, lon, alt) or :class:`GatewayError` naming the bad value."""
+    if len(origin) != 3:
+        raise GatewayError(f"origin must be (lat, lon, alt), got {tuple(origin)!r}")
+    lat, lon, alt = (float(c) for c in origin)
+    if not (math.isfinite(lat) and -90.0 <= lat <= 90.0):
+        raise GatewayError(f"origin latitude must be within -90..90 degrees, got {lat}")
+    if not (math.isfinite(lon) and -180.0 <= lon <= 180.0):
+        raise GatewayError(f"origin longitude must be within -180..180 degrees, got {lon}")
+    if not (math.isfinite(alt) and -1000.0 <= alt <= 10000.0):
+        raise GatewayError(f"origin altitude must be within -1000..10000 m, got {alt}")
+    return (lat, lon, alt)
+
+
+class GlobalOrigin:
+    """Gives the autopilot's EKF a global origin with SET_GPS_GLOBAL_ORIGIN, as mavros's set_gp_origin does.
+
+    Without GPS, PX4 has no global reference, and its AUTO modes (takeoff, land, hold) need one.
+    :meth:`request` (link up, autopilot rebooted) sends it to the vehicle's system id (never 0) at once;
+    :meth:`supervise` resends it every ``period`` s until the autopilot reports the same origin in
+    GPS_GLOBAL_ORIGIN (PX4 answers every SET_GPS_GLOBAL_ORIGIN with it), at most ``attempts`` times.
+    """
+
+    def __init__(
+        self,
+        link: MavlinkLink,
+        target_system: int,
+        origin: Sequence[float],
+        events: EventSink,
+        *,
+        period: float = 1.0,
+        attempts: int = 5,
+    ) -> None:
+        if not 1 <= int(target_system) <= 250:
+            raise GatewayError(f"the origin's target system must be within 1..250, got {target_system}")
+        self.link = link
+        self.target = int(target_system)
+        self.origin = check_origin(origin)
+        lat, lon, alt = self.origin
+        self._wire = (round(lat * 1e7), round(lon * 1e7), round(alt * 1000.0))
+        self.events = events
+        self.period = period
+        self.attempts = attempts
+        self.sent = 0
+        self.confirmed = False
+        self.reported: tuple[float, float, float] | None = None
+        self._left = 0
+        self._next = math.inf
+
+    def request(self, now: float) -> None:
+        """Send the origin now and keep resending it until confirmed."""
+        self.confirmed = False
+        self._left = self.attempts
+        self._next = now
+        self.supervise(now)
+
+    def supervise(self, now: float) -> None:
+        """Resend when due (the supervisor calls it)."""
+        if self.confirmed or now < self._next:
+            return
+        if self._left <= 0:
+            self._next = math.inf
+            lat, lon, alt = self.origin
+            self.events.emit(
+                "setup",
+                f"the autopilot did not confirm the EKF origin {lat:.7f}, {lon:.7f}, {alt:.2f} m "
+                f"after {self.attempts} SET_GPS_GLOBAL_ORIGIN",
+                4,
+            )
+            return
+        self._left -= 1
+        self._next = now + self.period
+        lat_e7, lon_e7, alt_mm = self._wire
+        msg = self.link.mav.set_gps_global_origin_encode(
+            self.target, lat_e7, lon_e7, alt_mm, wire.now_ns() // 1000
+        )
+        if self.link.send(msg):
+            self.sent += 1
+
+    def on_gps_global_origin(self, msg: Any, now: float) -> None:
+        """The autopilot's origin (GPS_GLOBAL_ORIGIN): confirms ours when it matches."""
+        self.reported = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+        lat_e7, lon_e7, alt_mm = self._wire
+        match = msg.latitude == lat_e7 and msg.longitude == lon_e7 and abs(msg.altitude - alt_mm) <= 10
+        if match and not self.confirmed and self._left < self.attempts:
+            self.confirmed = True
+            self._next = math.inf
+            lat, lon, alt = self.origin
+            self.events.emit(
+                "setup", f"EKF origin set: {lat:.7f}, {lon:.7f}, {alt:.2f} m", 6, origin=list(self.origin)
+            )
 
 
 # ------------------------------------------------------------------------------------------ vision

@@ -18,6 +18,12 @@ Connection strings are pymavlink's:
 
 Sending is thread-safe: one lock covers sequence numbering and the write, so frames from the vision,
 setpoint and command threads never interleave.
+
+With a :class:`~arena_common.signing.LinkSigning` (MAVLink 2 signing), every frame :meth:`MavlinkLink.send`
+writes is signed, and :meth:`MavlinkLink.read` checks every frame of the vehicle (signature, replay) before
+returning it: refused frames are counted per reason and handed to ``on_reject``, never decoded, never
+forwarded.  Raw frames forwarded from a ground station are written as they are: the ground station must
+sign them itself with the same key, or the vehicle drops them.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ import socket
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +45,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import all as mavlink2  # common + development + the rest: every CRC_EXTRA
 
 from arena_common.errors import ArenaError
+from arena_common.signing import LinkSigning
 
 __all__ = [
     "MSG",
@@ -71,6 +79,8 @@ MSG: dict[str, int] = {
         "EXTENDED_SYS_STATE",
         "STATUSTEXT",
         "ODOMETRY",
+        "GPS_GLOBAL_ORIGIN",
+        "RADIO_STATUS",
     )
 }
 
@@ -383,7 +393,9 @@ class MavlinkLink:
 
     :meth:`read` returns the frames of that system only (others are counted in :attr:`foreign` and
     dropped); :meth:`decode` turns a frame into a pymavlink message; :meth:`send` encodes and writes one.
-    The link opens lazily and can be re-opened (:meth:`reopen`) after a loss.
+    The link opens lazily and can be re-opened (:meth:`reopen`) after a loss.  With ``signing``, frames
+    sent are signed and frames read are verified; ``on_reject(reason, frame)`` hears of each refused one
+    (in the reading thread: keep it short).
     """
 
     def __init__(
@@ -393,6 +405,8 @@ class MavlinkLink:
         *,
         source_system: int = 245,
         source_component: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER,
+        signing: LinkSigning | None = None,
+        on_reject: Callable[[str, Frame], None] | None = None,
     ) -> None:
         if not 1 <= int(system_id) <= 250:
             raise MavlinkLinkError(f"vehicle system id must be within 1..250, got {system_id}")
@@ -410,6 +424,10 @@ class MavlinkLink:
         self._lock = threading.Lock()
         self._transport: _Transport | None = None
         self._splitter = FrameSplitter(stream=True)
+        self.signing = signing
+        self.on_reject = on_reject
+        if signing is not None:
+            signing.attach(self.mav)  # the decoder stays keyless: read() verifies before decoding
         self.frames_in = 0
         self.foreign = 0
         self.frames_out = 0
@@ -474,15 +492,26 @@ class MavlinkLink:
             return []
         out: list[Frame] = []
         sid = self.system_id
+        signing = self.signing
         for data, addr in chunks:
             frames = self._splitter.feed(data)
             mine = [f for f in frames if f.sysid == sid]
             self.foreign += len(frames) - len(mine)
+            if signing is not None and mine:
+                mine = [f for f in mine if self._verified(signing, f)]
             if mine:
                 t.accept_source(addr)
                 out.extend(mine)
         self.frames_in += len(out)
         return out
+
+    def _verified(self, signing: LinkSigning, frame: Frame) -> bool:
+        reason = signing.check(frame.raw, frame.msgid, frame.sysid, frame.compid)
+        if reason is None:
+            return True
+        if self.on_reject is not None:
+            self.on_reject(reason, frame)
+        return False
 
     def decode(self, frame: Frame) -> Any:
         """The pymavlink message of a frame, or None when it cannot be decoded."""
@@ -502,6 +531,8 @@ class MavlinkLink:
             t = self._transport
             if t is None or not t.can_send():
                 return False
+            if self.signing is not None:
+                self.signing.refresh()
             buf = msg.pack(self.mav)
             self.mav.seq = (self.mav.seq + 1) % 256
             return self._write(t, buf)

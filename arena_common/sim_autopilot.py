@@ -20,10 +20,19 @@ Behaviour chosen where PX4 versions differ (documented here once):
   ≤ 0 means MIS_TAKEOFF_ALT.
 - A command retried with a higher ``confirmation`` within 5 s of an identical executed one is acked
   with the first result and not executed again; this history survives a simulated reboot.
+- With a ``signing_key`` the vehicle behaves as PX4 with ``MAV_SIGN_CFG`` = 2 (signing always required):
+  everything it sends is signed (link id 0), and every message it receives must be signed with the same
+  key and carry a timestamp above the last one of its stream (link, system, component), except
+  RADIO_STATUS, ADSB_VEHICLE and COLLISION; refused messages are counted in :attr:`SimAutopilot.refused`
+  and reported by a STATUSTEXT at most every 5 s.  The streams seen are forgotten on a reboot (PX4 keeps
+  them in RAM).
+- SET_GPS_GLOBAL_ORIGIN addressed to the vehicle sets its EKF origin (:attr:`SimAutopilot.gps_origin`,
+  lost on reboot); every SET_GPS_GLOBAL_ORIGIN is answered with GPS_GLOBAL_ORIGIN once an origin is set.
 """
 
 from __future__ import annotations
 
+import collections
 import math
 import os
 import select
@@ -41,6 +50,7 @@ from pymavlink import mavutil
 
 from arena_common import px4
 from arena_common.px4 import ParamValue
+from arena_common.signing import PX4_UNSIGNED, LinkSigning, SigningKey
 from arena_common.sim_physics import (
     BatteryParams,
     ControlGains,
@@ -304,6 +314,7 @@ class SimAutopilot:
         battery: BatteryParams | None = None,
         soc: float = 1.0,
         seed: int = 0,
+        signing_key: SigningKey | None = None,
     ) -> None:
         if not 1 <= int(system_id) <= 250:
             raise SimAutopilotError(f"system id must be within 1..250, got {system_id}")
@@ -346,6 +357,14 @@ class SimAutopilot:
             self.conn.close()
             raise SimAutopilotError("pymavlink was loaded for MAVLink 1; import this module before pymavlink")
         self.connection = connection
+        self.signing: LinkSigning | None = None
+        if signing_key is not None:
+            self.signing = LinkSigning(signing_key, link_id=0, allow_unsigned=PX4_UNSIGNED)
+            self.signing.attach(self.conn.mav)
+        #: Refused input by "reason MESSAGE" (``"unsigned COMMAND_LONG"``, ``"replayed ODOMETRY"``…).
+        self.refused: collections.Counter[str] = collections.Counter()
+        self._refusal_text_at = -math.inf
+        self.origin_sets = 0  # SET_GPS_GLOBAL_ORIGIN taken, over reboots
         #: Called with the true pose after every physics tick (in the thread that steps), if set.
         self.on_tick: Callable[[TruePose], None] | None = None
         self._closed = False
@@ -391,6 +410,9 @@ class SimAutopilot:
         self.ignored_mocap = 0
         self.last_vision_sample_us = -1
         self.messages_in = 0
+        self.gps_origin: tuple[float, float, float] | None = None  # (lat deg, lon deg, alt m), EKF origin
+        if self.signing is not None:
+            self.signing.forget_streams()
 
     def close(self) -> None:
         """Close the MAVLink connection."""
@@ -477,6 +499,8 @@ class SimAutopilot:
         """
         if self._closed:
             return 1.0
+        if self.signing is not None:
+            self.signing.refresh()
         now_ns = self.clock.now_ns()
         if self._rebooting_until_ns:
             self._drain_input()
@@ -840,10 +864,28 @@ class SimAutopilot:
                 return
             if self._rebooting_until_ns:
                 continue
+            if self.signing is not None and not self._authentic(msg, t):
+                continue
             handler = handlers.get(msg.get_msgId())
             if handler is not None:
                 self.messages_in += 1
                 handler(self, msg, t)
+
+    def _authentic(self, msg: Any, t: float) -> bool:
+        """Whether a received message passes the signing rules (PX4 drops those that do not)."""
+        assert self.signing is not None
+        msgid = msg.get_msgId()
+        if msgid < 0:
+            return False  # bad data
+        reason = self.signing.check(msg.get_msgbuf(), msgid, msg.get_srcSystem(), msg.get_srcComponent())
+        if reason is None:
+            return True
+        name = msg.get_type()
+        self.refused[f"{reason} {name}"] += 1
+        if t - self._refusal_text_at >= 5.0:
+            self._refusal_text_at = t
+            self._statustext(px4.MAV_SEVERITY_WARNING, f"Signing: refused {reason} {name}")
+        return False
 
     def _addressed(self, target_system: int, target_component: int, allow_broadcast: bool) -> bool:
         if target_system == self.system_id:
@@ -1131,6 +1173,16 @@ class SimAutopilot:
         elif msg.tc1 > 0:
             self.timesync.update(now_ns // 1000, msg.tc1 // 1000, msg.ts1 // 1000)
 
+    def _on_set_gps_global_origin(self, msg: Any, t: float) -> None:
+        if msg.target_system == self.system_id:
+            self.gps_origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+            self.origin_sets += 1
+        origin = self.gps_origin
+        if origin is not None:  # PX4 answers every request with its origin, when it has one
+            self.conn.mav.gps_global_origin_send(
+                round(origin[0] * 1e7), round(origin[1] * 1e7), round(origin[2] * 1000), int(t * 1e6)
+            )
+
     _handlers: ClassVar[dict[int, Callable[[SimAutopilot, Any, float], None]]] = {}
 
     # ------------------------------------------------------------------ output
@@ -1307,6 +1359,7 @@ SimAutopilot._handlers = {
     331: SimAutopilot._on_odometry,
     102: SimAutopilot._on_vision_position_estimate,
     111: SimAutopilot._on_timesync,
+    48: SimAutopilot._on_set_gps_global_origin,
 }
 
 _ACTION_MODES: dict[str, tuple[int, int]] = {

@@ -18,6 +18,7 @@ from arena_common.bus import BusOptions
 from arena_common.config import ArenaConfig
 from arena_common.errors import ConfigError
 from arena_common.gateway import Gateway, GatewayOptions
+from arena_common.gateway_parts import GatewayError, parse_origin
 from arena_common.options import (
     ConfigOpt,
     ConnectOpt,
@@ -30,6 +31,7 @@ from arena_common.options import (
     load_config,
 )
 from arena_common.service import running, setup_logging
+from arena_common.signing import vehicle_key
 
 SERVICE = "gateway"
 
@@ -44,7 +46,8 @@ def main(
     stop: threading.Event | None = None,
 ) -> None:
     """Run the gateway of ``vehicle`` until ``stop`` is set (or SIGINT/SIGTERM)."""
-    cfg.vehicle(vehicle)  # an unknown vehicle fails before anything opens
+    cfg.vehicle(vehicle)  # an unknown vehicle, or a bad signing key file, fails before anything opens
+    vehicle_key(cfg, vehicle)
     with (
         running(SERVICE, cfg, options, vehicle=vehicle, host=host, stop=stop) as svc,
         Gateway(cfg, vehicle, svc.bus, options=gateway, stats=svc.stats, log=svc.log) as gw,
@@ -66,6 +69,13 @@ def cli(
         float, typer.Option("--telemetry-rate", help="Raw telemetry per message type, Hz (0: none).")
     ] = 10.0,
     state_rate: Annotated[float, typer.Option("--state-rate", help="State publications per second.")] = 50.0,
+    origin: Annotated[
+        str,
+        typer.Option(
+            "--origin",
+            help="EKF global origin sent to the autopilot: LAT,LON,ALT (deg, deg, m AMSL), or 'off'.",
+        ),
+    ] = "0,0,0",
     config: ConfigOpt = None,
     mode: ModeOpt = None,
     connect: ConnectOpt = None,
@@ -82,12 +92,17 @@ def cli(
         raise typer.BadParameter(f"--sysid must be within 1..254, got {sysid}")
     if not state_rate > 0:
         raise typer.BadParameter(f"--state-rate must be positive, got {state_rate}")
+    try:
+        origin_lla = parse_origin(origin)
+    except GatewayError as exc:
+        raise typer.BadParameter(f"--origin: {exc}") from None
     options = GatewayOptions(
         source_system=sysid,
         gcs=gcs,
         allow_gcs_manual=allow_gcs_manual,
         telemetry_rate=telemetry_rate,
         state_rate=state_rate,
+        origin=origin_lla,
     )
     try:
         main(cfg, bus_options(mode, connect, listen, zconfig), vehicle=vehicle, gateway=options, host=host)

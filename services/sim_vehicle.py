@@ -6,7 +6,8 @@ Each vehicle of the config (or each one named with ``--vehicle``) becomes a
 ``sim.yaw_deg``, with system id ``system_id``. All of them run in one thread. Every physics tick (or at
 ``--truth-rate``) each true pose is published as a :class:`~arena_common.wire.Pose` on
 ``arena/<name>/truth`` for the Motive emulator; its time ``t`` is the simulated clock, which reads like
-the wall clock at ``--speed 1``.
+the wall clock at ``--speed 1``.  A vehicle whose config names a ``signing_key_file`` signs its MAVLink
+and refuses unsigned or replayed input, as PX4 with signing required does.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from arena_common.options import (
     load_config,
 )
 from arena_common.service import running, setup_logging
+from arena_common.signing import vehicle_key
 from arena_common.sim_autopilot import SimAutopilot, SimAutopilotError, SimClock, TruePose, run_autopilots
 
 SERVICE = "sim_vehicle"
@@ -68,6 +70,7 @@ def build_autopilots(cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = (
                     yaw=math.radians(v.sim.yaw_deg),
                     seed=cfg.sim.seed + index,
                     params=preset,
+                    signing_key=vehicle_key(cfg, name),
                 )
             )
     except BaseException:
@@ -138,7 +141,11 @@ def main(
 
             svc.log.info(
                 "simulating %s at speed %.2f",
-                ", ".join(f"{ap.name} (sysid {ap.system_id}, {ap.connection})" for ap in autopilots),
+                ", ".join(
+                    f"{ap.name} (sysid {ap.system_id}, {ap.connection}"
+                    + (f", signed with key {ap.signing.key.fingerprint})" if ap.signing else ")")
+                    for ap in autopilots
+                ),
                 clock.speed,
             )
             run_autopilots(autopilots, stop=svc.stop)

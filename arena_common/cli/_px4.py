@@ -4,11 +4,15 @@ Both go through the vehicle's gateway (its ``arena/<drone>/cmd`` queryable), whi
 the arena requires (:data:`arena_common.px4.ARENA_REQUIRED_PARAMS`, INT32 values decoded bytewise) and,
 for ``setup``, writes those that differ and reads every one back.  A table shows each parameter; the
 exit status is 0 when all match, 1 when some differ or the vehicle did not answer.
+
+``arena px4 keygen FILE`` writes a new MAVLink 2 signing key (64 hex digits, mode 600) for a vehicle's
+``signing_key_file``; it prints the key's fingerprint, never the key.
 """
 
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Annotated, Any
 
 import typer
@@ -25,6 +29,7 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
+from arena_common.signing import SigningError, generate_key_file, write_px4_secret
 
 px4_app = typer.Typer(
     help="PX4 set-up of the arena's vehicles (through their gateways).", no_args_is_help=True
@@ -122,6 +127,32 @@ def setup(
 ) -> None:
     """Write the arena's required PX4 parameters of DRONE that differ, then read all of them back."""
     _run("setup", drone, timeout, config, mode, connect, listen, zconfig)
+
+
+@px4_app.command("keygen")
+def keygen(
+    file: Annotated[Path, typer.Argument(help="Key file to create (a vehicle's signing_key_file).")],
+    force: Annotated[bool, typer.Option("--force", help="Replace an existing key file.")] = False,
+    px4_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--px4-file",
+            help="Also write the key in PX4's format, to copy to the SD card as /mavlink/.secret.",
+        ),
+    ] = None,
+) -> None:
+    """Write a new random MAVLink 2 signing key to FILE (64 hex digits, readable by you only)."""
+    try:
+        key = generate_key_file(file, overwrite=force)
+        if px4_file is not None:
+            write_px4_secret(px4_file, key)
+    except SigningError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(f"{file}: new signing key {key.fingerprint} (fingerprint; the key itself stays in the file)")
+    if px4_file is not None:
+        typer.echo(f"{px4_file}: the same key for PX4 (copy it to the SD card as /mavlink/.secret)")
+    typer.echo("set signing_key_file for the vehicle in the arena config; the vehicle needs the same key")
 
 
 def register(app: typer.Typer) -> None:
