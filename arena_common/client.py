@@ -186,7 +186,15 @@ class Vehicle:
         raise CommandRejected(text, result=res.result, drone=self.name)
 
     def arm(self, timeout: float = 5.0) -> None:
-        """Arm the motors."""
+        """Arm the motors.
+
+        A vehicle whose chosen mode is still OFFBOARD (after an offboard-loss failsafe landed it) would
+        refuse to arm without a setpoint stream, so it is switched to hold first.
+        """
+        with self._cond:  # a fresh program may not have heard the vehicle's state yet
+            self._cond.wait_for(lambda: self._state is not None, timeout=min(timeout, 2.0))
+        if self.mode == "OFFBOARD":
+            self.command("hold", timeout)
         self.command("arm", timeout)
         self.wait_until(lambda v: v.armed, timeout, "armed")
 

@@ -153,12 +153,12 @@ def test_emulator_to_vision(tmp_path: Path, router_endpoint: str, bus_factory: C
     assert abs(wall_rate - VISION_HZ) <= 0.02 * VISION_HZ, wall_rate
     assert abs(t_rate - VISION_HZ) <= 0.02 * VISION_HZ, t_rate
     # Steady spacing, never a repeat: nearly every interval within one mocap interval (+1 ms of clock
-    # jitter) of the period, and all within two (a mocap frame lost on a loaded machine moves one sample).
+    # jitter) of the period, and all within three (a frame lost or late on a loaded machine moves one).
     intervals = np.diff(t) * 1e-6
     assert intervals.min() > 0
     off = np.abs(intervals - PERIOD_S * 1e3)
     assert np.mean(off <= 1e3 / MOCAP_HZ + 1.0) >= 0.97, sorted(intervals)
-    assert off.max() <= 2e3 / MOCAP_HZ + 1.0, sorted(intervals)
+    assert off.max() <= 3e3 / MOCAP_HZ + 1.0, sorted(intervals)
     assert statistics.pstdev(intervals) < 3.5
 
     # The true pose, in the arena frame, to within the emulator's noise (5 σ per sample, no bias).
