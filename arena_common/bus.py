@@ -25,6 +25,7 @@ from arena_common.config import ZenohSpec
 from arena_common.errors import BusError, PayloadError
 
 P = TypeVar("P", bound=wire.Payload)
+DISCOVERY_S = 2.0  # how long a new session may take to learn routes and tokens
 T = TypeVar("T")
 
 
@@ -70,9 +71,12 @@ def zenoh_config(spec: ZenohSpec | None = None, options: BusOptions | None = Non
     }
     if connect:
         settings["connect/endpoints"] = connect
-        # Services may start before the router: keep trying instead of failing at start.
-        settings["connect/timeout_ms"] = -1 if mode != "client" else 0
+        # Services may start before the router (keep trying); a client gives up after 10 s, with an error.
+        settings["connect/timeout_ms"] = -1 if mode != "client" else 10000
         settings["connect/exit_on_failure"] = False
+        # Retry soon and often (Zenoh's default starts at 1 s and doubles): a router restarted on the
+        # same host is back in well under a second.
+        settings["connect/retry"] = {"period_init_ms": 200, "period_max_ms": 2000, "period_increase_factor": 1.5}
     if listen:
         settings["listen/endpoints"] = listen
     settings.update(dict(spec.extra))
@@ -243,6 +247,7 @@ class Bus:
 
     def __init__(self, session: zenoh.Session) -> None:
         self.session = session
+        self.opened = time.monotonic()
         self._closables: list[Any] = []
         self._lock = threading.Lock()
 
@@ -335,12 +340,20 @@ class Bus:
         return self._keep(self.session.liveliness().declare_token(key))
 
     def alive(self, keyexpr: str, timeout: float = 1.0) -> list[str]:
-        """Keys of the liveliness tokens alive now that match ``keyexpr``."""
-        out = []
-        for reply in self.session.liveliness().get(keyexpr, timeout=timeout):
-            if reply.ok is not None:
-                out.append(str(reply.ok.key_expr))
-        return sorted(out)
+        """Keys of the liveliness tokens alive now that match ``keyexpr``.
+
+        In its first seconds a session may not have learnt the tokens yet: an empty answer is then
+        asked again until the session is ``DISCOVERY_S`` old.
+        """
+        while True:
+            out = [
+                str(r.ok.key_expr)
+                for r in self.session.liveliness().get(keyexpr, timeout=timeout)
+                if r.ok is not None
+            ]
+            if out or time.monotonic() - self.opened > DISCOVERY_S:
+                return sorted(out)
+            time.sleep(0.1)
 
     def watch_alive(self, keyexpr: str, callback: Callable[[str, bool], None]) -> Any:
         """Call ``callback(key, alive)`` when a matching token appears or vanishes (also for current ones)."""
@@ -429,11 +442,26 @@ class Queryable:
             pass
 
 
-def open_bus(spec: ZenohSpec | None = None, options: BusOptions | None = None) -> Bus:
-    """Open a Zenoh session from the config's Zenoh section and command-line overrides."""
+def open_bus(
+    spec: ZenohSpec | None = None, options: BusOptions | None = None, *, connect_wait: float = 2.0
+) -> Bus:
+    """Open a Zenoh session from the config's Zenoh section and command-line overrides.
+
+    When it has endpoints to connect to, wait up to ``connect_wait`` seconds for the first link (it
+    keeps trying in the background after that: services may start before the router).
+    """
+    conf = zenoh_config(spec, options)
     try:
-        return Bus(zenoh.open(zenoh_config(spec, options)))
-    except BusError:
-        raise
+        session = zenoh.open(conf)
     except Exception as exc:
         raise BusError(f"cannot open the Zenoh session: {exc}") from None
+    # A session that will connect somewhere is useful once linked: give it a moment (bounded), so that a
+    # first query or presence look-up does not run before the first link is up.
+    if (options and options.connect) or (spec and spec.connect):
+        deadline = time.monotonic() + connect_wait
+        while time.monotonic() < deadline:
+            info = session.info
+            if list(info.routers_zid()) or list(info.peers_zid()):
+                break
+            time.sleep(0.01)
+    return Bus(session)

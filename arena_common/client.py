@@ -401,8 +401,8 @@ class Arena:
 
     ``config`` is a config file path or :class:`~arena_common.config.ArenaConfig` (its Zenoh section
     says how to reach the bus); ``connect`` endpoints override it (``["tcp/192.168.1.20:7447"]``).
-    ``host`` names this computer in the config (default: the hostname); a laptop the config does not
-    name should use ``mode="client"`` so that its traffic goes through the router.
+    ``host`` names this computer in the config (default: the hostname).  The session is a client of the
+    router unless ``mode`` says otherwise.
     """
 
     def __init__(
@@ -420,7 +420,11 @@ class Arena:
         self.config = config
         self.src = name or _src()
         self._own_bus = bus is None
-        options = host_bus_options(config, host_name(host), BusOptions(mode=mode, connect=tuple(connect)))
+        # A client of the router by default: the router knows every service's presence at once, while a
+        # peer learns it link by link; user programs gain nothing from direct links.
+        options = host_bus_options(
+            config, host_name(host), BusOptions(mode=mode or "client", connect=tuple(connect))
+        )
         self.bus = bus or open_bus(config.zenoh if config else ZenohSpec(), options)
         self._vehicles: dict[str, Vehicle] = {}
         self._channel: Channel[Received[Any]] = Channel(4096, ring=True)

@@ -47,8 +47,9 @@ def sim_arena(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, 
         start_new_session=True,
         cwd=REPO,
     )
-    arena = Arena(path, name="test-examples")
+    arena: Arena | None = None
     try:
+        arena = Arena(path, name="test-examples")
         vs = [arena.vehicle(n) for n in VEHICLES]
         wait_for(
             lambda: all(v.state and v.link and v.state.vis_fused and v.state.setup_ok for v in vs),
@@ -58,7 +59,8 @@ def sim_arena(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, 
         )
         yield path, arena
     finally:
-        arena.close()
+        if arena is not None:
+            arena.close()
         if up.poll() is None:
             os.killpg(up.pid, signal.SIGINT)
             try:
@@ -189,3 +191,47 @@ def test_readme_program(sim_arena: tuple[Path, Arena]) -> None:
     _on_ground(arena, "d1")
     p = arena.vehicle("d1").position
     assert p is not None and p[0] > 1.2  # flew north from the goto point at (1.0, 0.5)
+
+
+def _arena_cli(path: Path, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "arena_common.cli", *args, "-c", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=REPO,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+
+
+def test_flight_commands_from_the_shell(sim_arena: tuple[Path, Arena]) -> None:
+    path, arena = sim_arena
+    for name in VEHICLES:
+        _on_ground(arena, name)
+    assert _arena_cli(path, "arm", "all").returncode == 0
+    res = _arena_cli(path, "takeoff", "all", "0.8")
+    assert res.returncode == 0, res.stderr
+    assert "d1, d2, d3" in res.stdout
+    res = _arena_cli(path, "goto", "d2", "0.5", "-0.5", "-1.0", "--yaw", "90")
+    assert res.returncode == 0, res.stderr
+    p = arena.vehicle("d2").position
+    assert p is not None and math.dist(p, (0.5, -0.5, -1.0)) <= 0.15
+    refused = _arena_cli(path, "goto", "d2", "9.0", "0.0", "-1.0")  # outside the 7 m room
+    assert refused.returncode == 1 and "REFUSED" in refused.stderr
+    top = _arena_cli(path, "top", "arena/*/vision", "--duration", "2.5")
+    assert top.returncode == 0 and "arena/d1/vision" in top.stdout
+    assert _arena_cli(path, "estop", "--reason", "test").returncode == 0
+    for name in VEHICLES:
+        _on_ground(arena, name)
+    assert any(
+        e.kind in ("failsafe", "safety", "command", "info") and "estop" in e.text.lower()
+        for e in arena.vehicle("d1").events()
+    ), [e.text for e in arena.vehicle("d1").events()]
+
+
+def test_shell_errors_exit_non_zero(sim_arena: tuple[Path, Arena]) -> None:
+    path, _ = sim_arena
+    absent = _arena_cli(path, "arm", "d9", timeout=60)
+    assert absent.returncode == 1 and "no gateway for this vehicle" in absent.stderr
+    bad = _arena_cli(path, "goto", "d1", "north", "0", "0")
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr

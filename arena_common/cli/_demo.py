@@ -75,6 +75,17 @@ def _wait_ready(
     return False
 
 
+def _stop(up: subprocess.Popen[bytes]) -> None:
+    """Stop the supervisor and everything it started (Ctrl-C first, then SIGKILL)."""
+    if up.poll() is None:
+        os.killpg(up.pid, signal.SIGINT)
+        try:
+            up.wait(20)
+        except subprocess.TimeoutExpired:
+            os.killpg(up.pid, signal.SIGKILL)
+            up.wait(5)
+
+
 def demo(
     config_file: Annotated[
         Path | None, typer.Argument(help="Arena config (default deploy/sim.toml).")
@@ -104,7 +115,13 @@ def demo(
     say: list[str] = [f"arena starting (pid {up.pid}, logs in {log})"]
     stop = threading.Event()
     failed: list[BaseException] = []
-    arena = Arena(cfg, name="arena-demo")
+    try:
+        arena = Arena(cfg, name="arena-demo")
+    except ArenaError as exc:
+        _stop(up)
+        logf.close()
+        console.print(f"[red]error:[/] {exc} (see {log})")
+        raise typer.Exit(1) from None
     snap = Snapshot(arena.bus)
 
     def program() -> None:
@@ -144,13 +161,7 @@ def demo(
     finally:
         stop.set()
         arena.close()
-        if up.poll() is None:
-            os.killpg(up.pid, signal.SIGINT)
-            try:
-                up.wait(20)
-            except subprocess.TimeoutExpired:
-                os.killpg(up.pid, signal.SIGKILL)
-                up.wait(5)
+        _stop(up)
         logf.close()
     if failed:
         raise typer.Exit(1)
