@@ -137,7 +137,7 @@ def _run_gateway(rate: float, settings: RunSettings) -> dict[str, Any]:
         wait_until(flowing, settings.start_timeout, "ODOMETRY from the gateway", procs)
         time.sleep(0.5)
         duration = settings.duration
-        idle = _cpu_window(gw.pid, duration) if settings.idle > 0 else 0.0
+        idle = _cpu_window(gw.pid, settings.idle) / settings.idle if settings.idle > 0 else 0.0
         collector.clear()
         sent: dict[int, int] = {}
         stop = threading.Event()
@@ -157,7 +157,7 @@ def _run_gateway(rate: float, settings: RunSettings) -> dict[str, Any]:
             sent,
             collector.take()["out"],
             (b - a) / 1e9,
-            idle * elapsed / duration,
+            idle * elapsed,
             elapsed,
             rss_bytes(gw.pid) or 0,
         )
@@ -214,7 +214,7 @@ def _run_mavproxy(rate: float, settings: RunSettings, command: str) -> dict[str,
         wait_until(flowing, settings.start_timeout, "MAVProxy to forward ODOMETRY", procs)
         time.sleep(0.5)
         duration = settings.duration
-        idle = _cpu_window(mp.pid, duration) if settings.idle > 0 else 0.0
+        idle = _cpu_window(mp.pid, settings.idle) / settings.idle if settings.idle > 0 else 0.0
         collector.clear()
         # Each frame is encoded just before it is sent; its send time is taken after encoding.
         sent: dict[int, int] = {}
@@ -237,7 +237,7 @@ def _run_mavproxy(rate: float, settings: RunSettings, command: str) -> dict[str,
             sent,
             collector.take()["out"],
             (b - a) / 1e9,
-            idle * elapsed / duration,
+            idle * elapsed,
             elapsed,
             rss_bytes(mp.pid) or 0,
         )

@@ -80,11 +80,11 @@ FLOOR_PREFIX = "bench/floor"
 class RunSettings:
     """How long each load point runs, and where logs go."""
 
-    duration: float = 5.0  # s measured
-    warmup: float = 1.5  # s of flow before the measurement starts
-    drain: float = 0.4  # s after the window for late messages to arrive
+    duration: float = 4.0  # s measured
+    warmup: float = 1.0  # s of flow before the measurement starts
+    drain: float = 0.3  # s after the window for late messages to arrive
     start_timeout: float = 90.0  # s for the processes to come up and data to flow
-    idle: float = 1.5  # s of idle CPU measured before the stream starts (0: skip)
+    idle: float = 1.0  # s of idle CPU measured before the stream starts (0: skip)
     logs: Path = Path("bench-results/logs")
     repo: Path = Path(".")
     profile: Callable[[ProcessSet, float], dict[str, Any]] | None = None  # run during the window
@@ -294,20 +294,43 @@ def decode_frames(
     return out
 
 
+def designed_outputs(frames: Sequence[_FrameInfo], vehicle: int, first: int, vision_rate: float) -> set[int]:
+    """Indices of the frames the downsampler's decimator passes for ``vehicle`` when it starts at ``first``.
+
+    The downsampler's own :class:`~arena_common.filters.TimeDecimator` fed with the frames' mid-exposure
+    times (its input times up to a constant clock offset), so what it skips is a drop by design.
+    """
+    from arena_common.filters import TimeDecimator
+
+    dec = TimeDecimator(vision_rate)
+    out: set[int] = set()
+    for k in range(first, len(frames)):
+        if frames[k].positions.get(vehicle) is not None and dec.offer(frames[k].mid_ns):
+            out.add(k)
+    return out
+
+
 def analyze_arena(
     frames: Sequence[_FrameInfo],
     outputs: Mapping[int, Sequence[tuple[int, bytes]]],
     t0: int,
     t1: int,
     rate: float,
+    vision_rate: float = VISION_RATE,
 ) -> dict[str, Any]:
-    """Latencies (ns), losses and mismatches of the frames stamped within ``[t0, t1]``."""
+    """Latencies (ns) and losses of the frames stamped within ``[t0, t1]``.
+
+    ``expected`` counts the frames the decimator passes by design (every tracked frame when the vision
+    rate is above the mocap rate); ``lost`` is how many fewer poses arrived (a pose the decimator took in
+    place of a lost neighbour counts as delivered), ``designed_drops`` the frames it skips by design.
+    """
     period = 1e9 / rate
     latencies: list[int] = []
-    expected = delivered = mismatched = duplicates = unmatched_time = 0
+    expected = delivered = mismatched = duplicates = unmatched_time = designed = substituted = 0
     residuals: list[int] = []
     per_vehicle: dict[int, dict[str, int]] = {}
     first_vehicle: list[tuple[int, int, int]] = []  # (frame number, frame stamp, ODOMETRY stamp) of vehicle 0
+    in_window_idx = [k for k, f in enumerate(frames) if t0 <= f.stamp <= t1]
     for v, records in outputs.items():
         index: dict[tuple[float, float, float], list[int]] = collections.defaultdict(list)
         for k, f in enumerate(frames):
@@ -328,6 +351,7 @@ def analyze_arena(
             near = sorted(d for d in diffs if abs(d - mode) <= 100_000)
             offset = near[len(near) // 2]
         matched: set[int] = set()
+        first_out: int | None = None
         v_lat: list[int] = []
         v_mis = v_dup = v_time = 0
         for stamp, (usec, p) in odos:
@@ -340,6 +364,8 @@ def analyze_arena(
             if abs(resid) > period / 3:
                 v_time += 1
                 continue
+            if first_out is None or best < first_out:
+                first_out = best
             f = frames[best]
             if not t0 <= f.stamp <= t1:
                 continue
@@ -351,10 +377,18 @@ def analyze_arena(
             v_lat.append(stamp - f.stamp)
             if v == 0:
                 first_vehicle.append((f.fn, f.stamp, stamp))
-        v_expected = sum(1 for f in frames if t0 <= f.stamp <= t1 and f.positions.get(v) is not None)
+        tracked = {k for k in in_window_idx if frames[k].positions.get(v) is not None}
+        wanted = (
+            designed_outputs(frames, v, first_out, vision_rate) & tracked
+            if first_out is not None
+            else tracked
+        )
+        v_expected = len(wanted)
         per_vehicle[v] = {
             "expected": v_expected,
             "delivered": len(matched),
+            "designed_drops": len(tracked) - v_expected,
+            "substituted": len(matched - wanted),
             "mismatched": v_mis,
             "unmatched_time": v_time,
             "duplicates": v_dup,
@@ -362,10 +396,12 @@ def analyze_arena(
         latencies += v_lat
         expected += v_expected
         delivered += len(matched)
+        designed += len(tracked) - v_expected
+        substituted += len(matched - wanted)
         mismatched += v_mis
         duplicates += v_dup
         unmatched_time += v_time
-    in_window = [f for f in frames if t0 <= f.stamp <= t1]
+    in_window = [frames[k] for k in in_window_idx]
     gaps = 0
     for a, b in itertools.pairwise(in_window):
         if b.fn > a.fn + 1:
@@ -375,7 +411,9 @@ def analyze_arena(
         "latencies": latencies,
         "expected": expected,
         "delivered": delivered,
-        "lost": expected - delivered,
+        "lost": max(0, expected - delivered),
+        "designed_drops": designed,
+        "substituted": substituted,
         "mismatched": mismatched,
         "duplicates": duplicates,
         "unmatched_time": unmatched_time,
@@ -620,9 +658,16 @@ def run_arena(
     rates: Sequence[float],
     settings: RunSettings,
     *,
+    realistic_vision: float | None = None,
     on_point: Callable[[PointResult], None] | None = None,
 ) -> list[PointResult]:
-    """The real pipeline for ``n`` vehicles at each rate (processes started once, the emulator per rate)."""
+    """The real pipeline for ``n`` vehicles at each rate (processes started once, the emulator per rate).
+
+    Every pose goes to the autopilot (vision rate :data:`VISION_RATE`).  With ``realistic_vision``, the
+    downsamplers are then restarted at that vision rate and one more point runs at the first rate (chain
+    ``arena-v<rate>``): the pipeline's CPU as deployed, its latencies and losses against what the
+    decimator passes by design.
+    """
     from arena_common.natnet_server import TICK_FREQUENCY
     from services.frame_transform import frame_transform
     from services.sim_mocap import rigid_bodies
@@ -644,6 +689,95 @@ def run_arena(
     feeder: TruthFeeder | None = None
     watcher: StatsWatcher | None = None
     hop_watcher: HopWatcher | None = None
+
+    def downsamplers(vision_rate: float) -> None:
+        for v in names:
+            procs.spawn(
+                f"downsampler.{v}",
+                "downsampler",
+                python_module("services.downsampler", *common, "--vehicle", v, "--rate", str(vision_rate)),
+                settings.repo,
+            )
+
+    def all_up() -> None:
+        expected_alive = 2 + 2 * n  # router, transform, downsamplers, gateways
+        assert bus is not None
+        the_bus = bus
+        wait_until(
+            lambda: len(the_bus.alive(f"arena/sys/alive/{HOST}/**", timeout=0.5)) >= expected_alive,
+            settings.start_timeout,
+            f"{expected_alive} services to come up",
+            procs,
+        )
+
+    def measure(rate: float, chain: str, vision_rate: float, idle: dict[str, dict[str, Any]]) -> PointResult:
+        assert watcher is not None
+        before = watcher.counters()
+        collector.clear()
+        if hop_watcher is not None:
+            hop_watcher.clear()
+        # The emulator first, then the ingest (its handshake then succeeds at once): both per rate.
+        emulator = procs.spawn(
+            f"emulator.{int(rate)}",
+            "emulator",
+            python_module("services.sim_mocap", *common, "--rate", str(rate)),
+            settings.repo,
+        )
+        wait_until(lambda: collector.count("frames") > 0, settings.start_timeout, "NatNet frames", procs)
+        ingest = procs.spawn(
+            "ingest", "ingest", python_module("services.mocap_ingest", *common), settings.repo
+        )
+        what = f"ODOMETRY from all {n} gateways at {rate:g} Hz"
+        _wait_outputs(collector, n, settings.start_timeout, what, procs, 0)
+        time.sleep(settings.warmup)
+        procs.check_alive()
+        t0 = time.time_ns()
+        procs.mark()
+        profile = settings.profile(procs, settings.duration) if settings.profile else {}
+        remaining = settings.duration - (time.time_ns() - t0) / 1e9
+        if remaining > 0:
+            time.sleep(remaining)
+        usage = procs.usage()
+        t1 = time.time_ns()
+        time.sleep(settings.drain)
+        procs.check_alive()
+        procs.stop(emulator)
+        _wait_quiet(collector, list(range(n)))
+        time.sleep(1.2)  # one more stats period, so the counters cover the whole run
+        after = watcher.counters()
+        procs.stop(ingest)
+        records = collector.take()
+        frames = decode_frames(records["frames"], body_to_vehicle, transform, version, TICK_FREQUENCY)
+        found = analyze_arena(frames, {i: records[i] for i in range(n)}, t0, t1, rate, vision_rate)
+        point = PointResult(
+            chain=chain,
+            vehicles=n,
+            rate=rate,
+            latency=latency_stats(found["latencies"]).as_dict(),
+            expected=found["expected"],
+            delivered=found["delivered"],
+            lost=found["lost"],
+            designed_drops=found["designed_drops"],
+            mismatched=found["mismatched"],
+            duplicates=found["duplicates"],
+            per_service=usage,
+            idle=idle,
+            counters=_delta(before, after),
+            profile=profile,
+            hops=hop_breakdown(found["first_vehicle"], hop_watcher.stamps) if hop_watcher else {},
+        )
+        keys_ = ("frames", "frame_gaps", "substituted", "unmatched_time", "clock_residual_us_p99")
+        point.notes.append(
+            f"vision {vision_rate:g} Hz, "
+            + ", ".join(
+                f"{k}={found[k]:.3g}" if isinstance(found[k], float) else f"{k}={found[k]}" for k in keys_
+            )
+        )
+        results.append(point)
+        if on_point is not None:
+            on_point(point)
+        return point
+
     try:
         collector.start()
         procs.spawn(
@@ -661,13 +795,7 @@ def run_arena(
         procs.spawn(
             "transform", "transform", python_module("services.frame_transform", *common), settings.repo
         )
-        for v in names:
-            procs.spawn(
-                f"downsampler.{v}",
-                "downsampler",
-                python_module("services.downsampler", *common, "--vehicle", v, "--rate", str(VISION_RATE)),
-                settings.repo,
-            )
+        downsamplers(VISION_RATE)
         for v in names:
             procs.spawn(
                 f"gateway.{v}",
@@ -675,14 +803,7 @@ def run_arena(
                 python_module("services.mavlink_gateway", *common, "--vehicle", v),
                 settings.repo,
             )
-        expected_alive = 1 + 2 * n  # transform, downsamplers, gateways (the router has a token too)
-        the_bus = bus
-        wait_until(
-            lambda: len(the_bus.alive(f"arena/sys/alive/{HOST}/**", timeout=0.5)) >= expected_alive + 1,
-            settings.start_timeout,
-            f"{expected_alive} services to come up",
-            procs,
-        )
+        all_up()
         idle: dict[str, dict[str, Any]] = {}
         if settings.idle > 0:
             time.sleep(0.5)
@@ -690,80 +811,14 @@ def run_arena(
             time.sleep(settings.idle)
             idle = procs.usage()
         for rate in rates:
-            before = watcher.counters()
-            collector.clear()
-            if hop_watcher is not None:
-                hop_watcher.clear()
-            # The emulator first, then the ingest (its handshake then succeeds at once): both per rate.
-            emulator = procs.spawn(
-                f"emulator.{int(rate)}",
-                "emulator",
-                python_module("services.sim_mocap", *common, "--rate", str(rate)),
-                settings.repo,
-            )
-            wait_until(lambda: collector.count("frames") > 0, settings.start_timeout, "NatNet frames", procs)
-            ingest = procs.spawn(
-                "ingest", "ingest", python_module("services.mocap_ingest", *common), settings.repo
-            )
-            _wait_outputs(
-                collector,
-                n,
-                settings.start_timeout,
-                f"ODOMETRY from all {n} gateways at {rate:g} Hz",
-                procs,
-                0,
-            )
-            time.sleep(settings.warmup)
-            procs.check_alive()
-            t0 = time.time_ns()
-            procs.mark()
-            profile = settings.profile(procs, settings.duration) if settings.profile else {}
-            remaining = settings.duration - (time.time_ns() - t0) / 1e9
-            if remaining > 0:
-                time.sleep(remaining)
-            usage = procs.usage()
-            t1 = time.time_ns()
-            time.sleep(settings.drain)
-            procs.check_alive()
-            procs.stop(emulator)
-            _wait_quiet(collector, list(range(n)))
-            time.sleep(1.2)  # one more stats period, so the counters cover the whole run
-            after = watcher.counters()
-            procs.stop(ingest)
-            records = collector.take()
-            frames = decode_frames(records["frames"], body_to_vehicle, transform, version, TICK_FREQUENCY)
-            found = analyze_arena(frames, {i: records[i] for i in range(n)}, t0, t1, rate)
-            counters = _delta(before, after)
-            designed = sum(
-                c.get("skipped", 0) + sum(v for k, v in c.items() if k.startswith("rejected:outlier"))
-                for name, c in counters.items()
-                if name.startswith("downsampler.")
-            )
-            point = PointResult(
-                chain="arena",
-                vehicles=n,
-                rate=rate,
-                latency=latency_stats(found["latencies"]).as_dict(),
-                expected=found["expected"],
-                delivered=found["delivered"],
-                lost=found["lost"],
-                designed_drops=designed,
-                mismatched=found["mismatched"],
-                duplicates=found["duplicates"],
-                per_service=usage,
-                idle=idle,
-                counters=counters,
-                profile=profile,
-                hops=hop_breakdown(found["first_vehicle"], hop_watcher.stamps) if hop_watcher else {},
-            )
-            extra = {k: found[k] for k in ("frames", "frame_gaps", "unmatched_time", "clock_residual_us_p99")}
-            point.notes.append(
-                ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in extra.items())
-            )
-            results.append(point)
-            if on_point is not None:
-                on_point(point)
+            measure(rate, "arena", VISION_RATE, idle)
             idle = {}
+        if realistic_vision is not None:
+            for c in [c for c in procs.children if c.role == "downsampler"]:
+                procs.stop(c)
+            downsamplers(realistic_vision)
+            all_up()
+            measure(rates[0], f"arena-v{realistic_vision:g}", realistic_vision, {})
     finally:
         if hop_watcher is not None:
             hop_watcher.close()

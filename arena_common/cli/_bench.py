@@ -46,6 +46,17 @@ def bench(
     profile: Annotated[
         bool, typer.Option("--profile", help="py-spy the services during each pipeline measurement.")
     ] = False,
+    realistic_vision: Annotated[
+        float,
+        typer.Option(
+            "--realistic-vision",
+            help="Vision rate (Hz) of one more point at the largest load, as deployed (0: skip).",
+        ),
+    ] = 50.0,
+    hops: Annotated[
+        bool,
+        typer.Option("--hops", help="Also time each stage of the first vehicle (subscribes to its keys)."),
+    ] = False,
     out: Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")] = Path(
         "bench-results"
     ),
@@ -69,7 +80,12 @@ def bench(
     if rerender is not None:
         bench_mod.rerender(rerender, docs_file)
         return
-    changes: dict[str, Any] = {"out_dir": out, "profile": profile}
+    changes: dict[str, Any] = {
+        "out_dir": out,
+        "profile": profile,
+        "hops": hops,
+        "realistic_vision": realistic_vision if realistic_vision > 0 else None,
+    }
     if part:
         changes["parts"] = tuple(part)
     if vehicles is not None:
