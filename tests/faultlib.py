@@ -40,7 +40,7 @@ from typing import IO, Any
 os.environ.setdefault("MAVLINK20", "1")
 
 from arena_common import keys, px4, wire
-from arena_common.bus import Bus, open_bus
+from arena_common.bus import Bus, BusOptions, open_bus
 from arena_common.config import ArenaConfig, ArenaSpec, ZenohSpec
 from arena_common.sim_autopilot import AutopilotLoop, SimAutopilot, SimClock, TruePose
 from tests.conftest import REPO, free_port, wait_for
@@ -74,15 +74,17 @@ def write_arena_config(
     recorder: str = "",
     sim_links: dict[str, str] | None = None,
     gateway_ports: dict[str, int] | None = None,
+    endpoint: str | None = None,
     name: str = "arena.toml",
 ) -> Path:
     """Write a one-host (``test``) config with free ports; return its path.
 
     ``sim_links`` maps a vehicle to the MAVLink connection its simulated autopilot uses (e.g. through a
     :class:`LossyLink`) instead of the mirror of its gateway's, ``gateway_ports`` to the UDP port its
-    gateway listens on (else a free one); ``recorder`` is the body of a ``[recorder]`` table.
+    gateway listens on (else a free one); ``recorder`` is the body of a ``[recorder]`` table;
+    ``endpoint`` is the router's (else a free port).
     """
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
     lines = [
         "[arena]",
         'name = "faults"',
@@ -128,6 +130,14 @@ def write_arena_config(
 def peer_bus(cfg: ArenaConfig) -> Bus:
     """A peer session on the config's router (what a user program on this host opens)."""
     return open_bus(cfg.zenoh)
+
+
+def router(endpoint: str) -> Bus:
+    """A Zenoh router in this process listening on ``endpoint`` (close it to stop)."""
+    return open_bus(
+        ZenohSpec(mode="router", connect=(), router_listen=(endpoint,)),
+        BusOptions(settings={"connect/endpoints": []}),
+    )
 
 
 def client_bus(cfg: ArenaConfig) -> Bus:
