@@ -75,6 +75,7 @@ def write_arena_config(
     sim_links: dict[str, str] | None = None,
     gateway_ports: dict[str, int] | None = None,
     endpoint: str | None = None,
+    multicast: bool = True,
     name: str = "arena.toml",
 ) -> Path:
     """Write a one-host (``test``) config with free ports; return its path.
@@ -82,7 +83,8 @@ def write_arena_config(
     ``sim_links`` maps a vehicle to the MAVLink connection its simulated autopilot uses (e.g. through a
     :class:`LossyLink`) instead of the mirror of its gateway's, ``gateway_ports`` to the UDP port its
     gateway listens on (else a free one); ``recorder`` is the body of a ``[recorder]`` table;
-    ``endpoint`` is the router's (else a free port).
+    ``endpoint`` is the router's (else a free port); ``multicast`` false streams NatNet by unicast (a
+    fresh network namespace has no multicast route).
     """
     endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
     lines = [
@@ -93,6 +95,7 @@ def write_arena_config(
         f"data_port = {free_port(socket.SOCK_DGRAM)}",
         'server = "127.0.0.1"',
         'interface = "127.0.0.1"',
+        f"multicast = {'true' if multicast else 'false'}",
         "[zenoh]",
         'mode = "peer"',
         f'connect = ["{endpoint}"]',
@@ -588,10 +591,15 @@ class ThreadDeaths:
 
 
 class Watch:
-    """States, events and stats as the bus carries them, drained by a background thread."""
+    """States, events and stats as the bus carries them, drained by a background thread.
 
-    def __init__(self, bus: Bus) -> None:
+    With ``history``, every Stats received is kept in :attr:`stats_history` (service → [(time, Stats)]).
+    """
+
+    def __init__(self, bus: Bus, history: bool = False) -> None:
         self.bus = bus
+        self.keep_history = history
+        self.stats_history: dict[str, list[tuple[float, wire.Stats]]] = {}
         self.states: dict[str, wire.State] = {}
         self.state_times: dict[str, deque[float]] = {}
         self.events: list[tuple[float, str, wire.Event]] = []
@@ -621,6 +629,10 @@ class Watch:
                     if isinstance(item.payload, wire.Stats):
                         self.stats[item.payload.service] = item.payload
                         self.stats_times[item.payload.service] = now
+                        if self.keep_history:
+                            self.stats_history.setdefault(item.payload.service, []).append(
+                                (now, item.payload)
+                            )
 
     def state(self, name: str) -> wire.State | None:
         with self._lock:
@@ -629,6 +641,15 @@ class Watch:
     def stat(self, service: str) -> wire.Stats | None:
         with self._lock:
             return self.stats.get(service)
+
+    def all_stats(self) -> dict[str, wire.Stats]:
+        with self._lock:
+            return dict(self.stats)
+
+    def history(self, service: str, after: float = -math.inf, before: float = math.inf) -> list[wire.Stats]:
+        """The stats of ``service`` received within ``(after, before]`` (needs ``history=True``)."""
+        with self._lock:
+            return [s for t, s in self.stats_history.get(service, []) if after < t <= before]
 
     def fresh_stat(self, service: str, after: float) -> wire.Stats | None:
         """The latest stats of ``service`` received after monotonic time ``after``."""

@@ -14,14 +14,17 @@ happens to the vehicle is what the design says, measures the recovery and record
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import textwrap
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,7 +38,7 @@ from arena_common.client import Arena
 from arena_common.config import ArenaConfig
 from arena_common.errors import BusError
 from arena_common.recording import RecordingReader
-from tests.conftest import free_port, wait_for
+from tests.conftest import REPO, free_port, wait_for
 from tests.faultlib import (
     PYTHON,
     ArenaUp,
@@ -101,6 +104,7 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
         recorder=f'directory = "{tmp / "rec"}"\nkeys = {RECORDED}\nflush_s = {FLUSH_S}',
         gateway_ports={"d1": link.gateway[1]},
         sim_links={"d1": f"udpout:127.0.0.1:{link.listen_port}"},
+        multicast=os.environ.get("ARENA_FAULTS_MULTICAST", "1") == "1",
     )
     cfg = config_mod.load(path)
     bus = peer_bus(cfg)
@@ -430,37 +434,37 @@ def test_user_program_killed_in_offboard_lands(rig: Rig) -> None:
 # -- a bad link ----------------------------------------------------------------------------------------------
 
 
-def _netem_reason() -> str:
-    """Empty when ``tc … netem`` works in a network namespace here, else why not."""
-    if os.geteuid() != 0:
-        return "network namespaces and tc need root"
-    ns = f"arena-netem-{os.getpid()}"
-    try:
-        made = subprocess.run(["ip", "netns", "add", ns], capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        return f"'ip netns add' unavailable: {exc}"
-    if made.returncode != 0:
-        return f"'ip netns add' fails: {made.stderr.strip()}"
-    try:
-        res = subprocess.run(
-            ["ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", "lo", "root", "netem", "delay", "10ms"],
-            capture_output=True,
-            text=True,
-            timeout=10,
+# How test_lossy_delayed_radio_link degrades the link: "relay" (user space, the MAVLink link alone) or
+# "netem" (tc netem on the loopback of the network namespace the whole test runs in: every link of the
+# arena); test_link_loss_and_delay_with_netem runs it in a namespace of its own with "netem".
+LINK_MODE = os.environ.get("ARENA_FAULTS_LINK", "relay")
+NETEM_ARGS = ("delay", "15ms", "5ms", "loss", "2%")
+
+
+@contextmanager
+def bad_link(rig: Rig) -> Iterator[str]:
+    """Degrade the link for the block; yields what was done."""
+    if LINK_MODE == "netem":
+        subprocess.run(
+            ["tc", "qdisc", "add", "dev", "lo", "root", "netem", *NETEM_ARGS], check=True, timeout=10
         )
-        return "" if res.returncode == 0 else f"tc netem unavailable in this kernel: {res.stderr.strip()}"
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        return f"tc unavailable: {exc}"
-    finally:
-        subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
+        try:
+            yield "netem on every link: " + " ".join(NETEM_ARGS)
+        finally:
+            subprocess.run(["tc", "qdisc", "del", "dev", "lo", "root"], check=False, timeout=10)
+    else:
+        rig.link.set(loss=0.10, delay=0.030, jitter=0.010)
+        try:
+            yield "radio link 10 % loss, 30±10 ms delay"
+        finally:
+            rig.link.set(loss=0.0, delay=0.0, jitter=0.0)
 
 
 def test_lossy_delayed_radio_link(rig: Rig) -> None:
     """10 % loss and 30 ± 10 ms delay each way on the MAVLink link (a poor radio), in user space."""
     fly(rig)
     t0 = time.monotonic()
-    rig.link.set(loss=0.10, delay=0.030, jitter=0.010)
-    try:
+    with bad_link(rig) as what:
         time.sleep(4.0)
         t1 = time.monotonic()
         ages = sorted(rig.ap.tap.ages(after=t0 + 0.5, before=t1))
@@ -469,30 +473,73 @@ def test_lossy_delayed_radio_link(rig: Rig) -> None:
         res = rig.arena.vehicle("d1").command("ping", timeout=5.0)
         assert res.ok
         still = hovering(rig.ap)
-    finally:
-        rig.link.set(loss=0.0, delay=0.0, jitter=0.0)
     t_clear = time.monotonic()
     time.sleep(1.0)
     ages_after = sorted(rig.ap.tap.ages(after=t_clear + 0.2))
-    assert still, rig.ap.mode_name
-    assert 35.0 <= rate <= 50.0, rate
-    assert ages[len(ages) // 2] < 0.1, ages[len(ages) // 2]
     record(
-        "radio link 10 % loss, 30±10 ms delay",
+        what,
         vision_rate_hz=rate,
         vision_age_p50_s=ages[len(ages) // 2],
         vision_age_p99_s=ages[int(len(ages) * 0.99)],
         vision_max_gap_s=gap,
         vision_age_p50_after_s=ages_after[len(ages_after) // 2] if ages_after else math.nan,
-        vehicle="hovers on",
+        vehicle="hovers on" if still else rig.ap.mode_name,
     )
+    assert still, rig.ap.mode_name
+    assert 35.0 <= rate <= 50.0, rate
+    assert ages[len(ages) // 2] < 0.1, ages[len(ages) // 2]
+
+
+def _in_namespace(ns: str, *argv: str, timeout: float = 10.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["ip", "netns", "exec", ns, *argv], capture_output=True, text=True, timeout=timeout)
+
+
+def _netem_reason() -> str:
+    """Empty when ``tc … netem`` works in a network namespace here, else why not."""
+    if os.geteuid() != 0 or shutil.which("ip") is None or shutil.which("tc") is None:
+        return "network namespaces and tc need root, ip and tc"
+    ns = f"arena-netem-{os.getpid()}"
+    made = subprocess.run(["ip", "netns", "add", ns], capture_output=True, text=True, timeout=10)
+    if made.returncode != 0:
+        return f"'ip netns add' fails: {made.stderr.strip()}"
+    try:
+        res = _in_namespace(ns, "tc", "qdisc", "add", "dev", "lo", "root", "netem", "delay", "10ms")
+        return "" if res.returncode == 0 else f"tc netem unavailable in this kernel: {res.stderr.strip()}"
+    finally:
+        subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
 
 
 def test_link_loss_and_delay_with_netem() -> None:
+    """The radio test again, the whole arena in a network namespace of its own with netem on its links."""
     reason = _netem_reason()
     if reason:
-        pytest.skip(f"{reason} (test_lossy_delayed_radio_link covers loss and delay in user space)")
-    pytest.skip("netem is available here, but the arena runs in the host namespace; see the user-space test")
+        pytest.skip(f"{reason} (test_lossy_delayed_radio_link measures loss and delay in user space)")
+    ns = f"arena-faults-{os.getpid()}"
+    subprocess.run(["ip", "netns", "add", ns], check=True, timeout=10)
+    try:
+        _in_namespace(ns, "ip", "link", "set", "lo", "up")
+        env = {**os.environ, "ARENA_FAULTS_LINK": "netem", "ARENA_FAULTS_MULTICAST": "0"}
+        argv = [
+            PYTHON,
+            "-m",
+            "pytest",
+            "-q",
+            "-s",
+            "-p",
+            "no:cacheprovider",
+            f"{__file__}::test_lossy_delayed_radio_link",
+        ]
+        res = subprocess.run(
+            ["ip", "netns", "exec", ns, *argv], capture_output=True, text=True, timeout=300, env=env, cwd=REPO
+        )
+        print(res.stdout[-4000:])
+        assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-2000:]
+    finally:
+        pids = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True, timeout=10)
+        for pid in pids.stdout.split():  # nothing should be left; if it is, it goes with the namespace
+            with contextlib.suppress(ProcessLookupError, ValueError):
+                os.kill(int(pid), signal.SIGKILL)
+        subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
 
 
 # -- the supervisor itself -----------------------------------------------------------------------------------
