@@ -69,11 +69,11 @@ class BenchOptions:
     vehicles: tuple[int, ...] = (1, 10, 20)
     rates: tuple[float, ...] = (180.0, 360.0)
     floors: tuple[str, ...] = FLOORS
-    duration: float = 4.0  # s measured per load point
+    duration: float = 3.0  # s measured per load point
     warmup: float = 1.0  # s of flow before each measurement
     idle: float = 1.0  # s of idle CPU measured per process set (0: skip)
     peer_rate: float = 200.0  # Hz of vision in the peer comparison
-    peer_duration: float = 4.0
+    peer_duration: float = 3.0
     micro_scale: float = 1.0  # loop lengths of the micro-benchmarks (1 = full)
     out_dir: Path = Path("bench-results")
     docs: Path | None = Path("docs/performance.md")
@@ -420,13 +420,14 @@ def latency_rows(points: Sequence[PointResult]) -> list[list[str]]:
                     _f(lat["max"]),
                     lost,
                     ratio,
+                    _f(p.load, 1),
                 ]
             )
     return rows
 
 
 LATENCY_HEADER = [
-    "load",
+    "vehicles × rate",
     "chain",
     "p50 ms",
     "p99 ms",
@@ -434,9 +435,10 @@ LATENCY_HEADER = [
     "max ms",
     "lost/expected",
     "× floor p50/p99",
+    "machine load",
 ]
 RESOURCE_HEADER = [
-    "load",
+    "vehicles × rate",
     "chain",
     "ingest",
     "transform",
@@ -531,7 +533,7 @@ def peer_rows(peer: dict[str, Any]) -> list[list[str]]:
     return rows
 
 
-HOPS_HEADER = ["load", "ingest", "transform", "downsampler", "gateway", "sum of p50s"]
+HOPS_HEADER = ["vehicles × rate", "ingest", "transform", "downsampler", "gateway", "sum of p50s"]
 
 
 def hop_rows(points: Sequence[PointResult]) -> list[list[str]]:
@@ -636,7 +638,7 @@ def markdown_report(result: dict[str, Any]) -> str:
         for load, prof in profiles.items():
             for service, funcs in prof.items():
                 rows.append([load, service, "; ".join(f"{fn} {pct:.0f} %" for fn, pct in funcs[:5])])
-        parts.append(_markdown(["load", "service", "top functions"], rows))
+        parts.append(_markdown(["vehicles × rate", "service", "top functions"], rows))
     return "\n".join(parts)
 
 
@@ -724,6 +726,12 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
             f"  load {os.getloadavg()[0]:.2f}"
         )
 
+    busy = result["load_before"] and result["load_before"][0] > (os.cpu_count() or 1) * 0.75
+    if busy:
+        console.print(
+            "[yellow]the machine is busy (load average above its cores): figures will be inflated; "
+            "prefer a quiet moment[/yellow]"
+        )
     console.print(
         f"[bold]arena bench[/bold]: {result['machine']['cpu']}, {result['machine']['cores']} cores, "
         f"load {', '.join(f'{x:.2f}' for x in result['load_before'])}; logs in {logs}"

@@ -25,6 +25,7 @@ from __future__ import annotations
 import collections
 import itertools
 import math
+import os
 import random
 import struct
 import threading
@@ -80,7 +81,7 @@ FLOOR_PREFIX = "bench/floor"
 class RunSettings:
     """How long each load point runs, and where logs go."""
 
-    duration: float = 4.0  # s measured
+    duration: float = 3.0  # s measured
     warmup: float = 1.0  # s of flow before the measurement starts
     drain: float = 0.3  # s after the window for late messages to arrive
     start_timeout: float = 90.0  # s for the processes to come up and data to flow
@@ -111,6 +112,7 @@ class PointResult:
     notes: list[str] = field(default_factory=list)
     profile: dict[str, Any] = field(default_factory=dict)
     hops: dict[str, dict[str, float]] = field(default_factory=dict)
+    load: float = math.nan  # the machine's 1-minute load average at the end of the measurement
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -761,6 +763,7 @@ def run_arena(
             mismatched=found["mismatched"],
             duplicates=found["duplicates"],
             per_service=usage,
+            load=os.getloadavg()[0],
             idle=idle,
             counters=_delta(before, after),
             profile=profile,
@@ -1054,6 +1057,7 @@ def run_floor(
                 lost=found["lost"],
                 duplicates=found["duplicates"],
                 per_service=usage,
+                load=os.getloadavg()[0],
             )
             results.append(point)
             if on_point is not None:
