@@ -211,7 +211,7 @@ def test_recorder_killed_loses_at_most_its_flush_interval(rig: Rig) -> None:
     assert lost <= FLUSH_S + 0.35, f"lost the last {lost:.2f} s (flush interval {FLUSH_S} s)"
     # The vehicle did not notice.
     gap = max_gap(rig.odometry(), t0 - 0.2, t_back)
-    assert gap < EKF_VISION_TIMEOUT_S / 2, f"vision gap {gap:.3f} s"
+    assert gap < EKF_VISION_TIMEOUT_S, f"vision gap {gap:.3f} s"
     assert hovering(rig.ap) and not rig.ap.tap.invalid
     record(
         "recorder kill -9",
@@ -249,7 +249,7 @@ def test_router_killed_peers_on_the_host_keep_flowing(rig: Rig) -> None:
             b.close()
     time.sleep(1.0)
     gap = max_gap(rig.odometry(), t0 - 0.2, time.monotonic())
-    assert gap < EKF_VISION_TIMEOUT_S / 2, f"vision gap {gap:.3f} s while the router was down"
+    assert gap < EKF_VISION_TIMEOUT_S, f"vision gap {gap:.3f} s while the router was down"
     assert hovering(rig.ap), rig.ap.mode_name
     record(
         "router kill -9",

@@ -99,6 +99,12 @@ def rejected(watch: Watch, service: str, reasons: tuple[str, ...] = ()) -> int:
     return sum(int(v) for k, v in st_.rejected.items() if not reasons or k in reasons)
 
 
+def dropped(watch: Watch, service: str) -> int:
+    """Samples the service's input queue could not hold, from its latest stats."""
+    st_ = watch.stat(service)
+    return int(st_.counts.get("dropped", 0)) if st_ is not None else 0
+
+
 def fresh_stats(watch: Watch, services: list[str], timeout: float = 10.0) -> None:
     """Wait until every service published stats after now."""
     t0 = time.monotonic()
@@ -357,6 +363,7 @@ def test_bad_payloads_on_every_key_are_refused_counted_and_never_reach_the_vehic
     ap = pipe.ap
     n_deaths = len(pipe.deaths.deaths)
     fresh_stats(pipe.watch, SERVICE_IDS)
+    ds_dropped_before = dropped(pipe.watch, "downsampler.d1")
     before = {
         "transform": rejected(pipe.watch, "transform", ("bad_payload",)),
         "downsampler.d1": rejected(pipe.watch, "downsampler.d1", ("bad_payload",)),
@@ -395,12 +402,19 @@ def test_bad_payloads_on_every_key_are_refused_counted_and_never_reach_the_vehic
         "recorder": lambda: rejected(pipe.watch, "recorder", ("undecodable",)),
         "sim_mocap": lambda: rejected(pipe.watch, "sim_mocap", ("truth",)),
     }
-    wait_for(
-        lambda: all(now[k]() - before[k] >= want[k] for k in want), 15.0, 0.1, what="every bad sample counted"
-    )
+    # On a loaded computer the downsampler's 16-deep queue may overflow: what it dropped (counted, with
+    # legitimate poses) it could not refuse.
+    slack = {"downsampler.d1": lambda: dropped(pipe.watch, "downsampler.d1") - ds_dropped_before}
+
+    def counted() -> bool:
+        return all(now[k]() - before[k] + slack.get(k, lambda: 0)() >= want[k] for k in want)
+
+    wait_for(counted, 15.0, 0.1, what="every bad sample counted")
     time.sleep(1.2)  # one more stats period: nothing counted twice
     fresh_stats(pipe.watch, SERVICE_IDS)
     got = {k: now[k]() - before[k] for k in want}
+    ds_slack = slack["downsampler.d1"]()
+    assert want["downsampler.d1"] - ds_slack <= got.pop("downsampler.d1") <= want.pop("downsampler.d1")
     assert got == want, (got, want, dict(hows))
     # The gateway's vision and setpoint inputs keep only the latest samples (rings): what it saw, it refused.
     vision = rejected(pipe.watch, "gateway.d1", ("vision: undecodable",)) - before["vision"]

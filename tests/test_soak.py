@@ -266,7 +266,9 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
     # The simulated world must have loaded the pipeline as asked (a starved emulator skips frames).
     assert ingest_out > 0.5 * MOCAP_HZ * len(soak.names) * seconds, ingest_out
     assert all(v == 0 for v in losses.values()), losses
-    assert sum(overload.values()) <= 0.01 * total["on_bus"], overload  # a machine that keeps up
+    # A machine that keeps up: under 1 % of the poses dropped before the decimation, of the vision after it.
+    assert tf_dropped + total["ds_dropped"] <= 0.01 * tf_in, overload
+    assert total["on_bus"] - total["gw_sent"] <= 0.01 * total["on_bus"], overload
     assert min(vision_rates) > 0.8 * VISION_HZ, vision_rates
     arena_growth = {n: g for n, g in growth.items() if not n.startswith("sim_")}  # the simulated world aside
     worst = max(arena_growth.items(), key=lambda kv: kv[1])
