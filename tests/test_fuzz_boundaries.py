@@ -434,6 +434,55 @@ def test_bad_payloads_on_every_key_are_refused_counted_and_never_reach_the_vehic
     print(f"\nbad samples: {sum(sent.values())} on {len(sent)} keys; mutations {dict(hows)}")
 
 
+ODD_VALUES = st.recursive(
+    st.one_of(
+        st.none(),
+        st.booleans(),
+        st.integers(-(2**63), 2**64 - 1),
+        st.floats(allow_nan=True, allow_infinity=True),
+        st.text(max_size=20),
+        st.binary(max_size=20),
+    ),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
+    max_leaves=12,
+)
+
+
+def test_valid_payloads_with_unusual_contents_are_recorded(pipe: Pipeline) -> None:
+    """Maps of anything (bytes, NaN, 64-bit integers, nesting) are valid Telemetry/Event payloads: the
+    recorder keeps them, counts none as undecodable, and goes on."""
+    n_deaths = len(pipe.deaths.deaths)
+    fresh_stats(pipe.watch, ["recorder"])
+    st0 = pipe.watch.stat("recorder")
+    assert st0 is not None
+    in0, undecodable0 = int(st0.counts.get("in", 0)), rejected(pipe.watch, "recorder", ("undecodable",))
+    sent = 0
+
+    @fuzz(100)
+    @given(fields=st.dictionaries(st.text(max_size=8), ODD_VALUES, max_size=5), event=st.booleans())
+    def publish(fields: dict[str, Any], event: bool) -> None:
+        nonlocal sent
+        payload: wire.Payload = (
+            wire.Event(t=wire.now_ns(), kind="info", text="odd", data=fields)
+            if event
+            else wire.Telemetry(t=wire.now_ns(), msg="ODD", f=fields)
+        )
+        key = keys.events("d9") if event else keys.telemetry("d9", "ODD")
+        put(pipe.bus, key, payload.encode(), payload.encoding())
+        sent += 1
+        time.sleep(0.002)
+
+    publish()
+
+    def counted() -> bool:
+        s = pipe.watch.stat("recorder")
+        return s is not None and int(s.counts.get("in", 0)) - in0 >= sent
+
+    wait_for(counted, 10.0, 0.1, what="the recorder counting every odd payload")
+    assert rejected(pipe.watch, "recorder", ("undecodable",)) == undecodable0
+    assert_healthy(pipe, n_deaths)
+
+
 @st.composite
 def bad_commands(draw: st.DrawFn) -> tuple[bytes, str, str]:
     """(query payload, encoding, kind): a Command that does not decode, or one whose arguments are wrong."""
