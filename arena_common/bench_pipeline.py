@@ -380,11 +380,12 @@ def analyze_arena(
             if v == 0:
                 first_vehicle.append((f.fn, f.stamp, stamp))
         tracked = {k for k in in_window_idx if frames[k].positions.get(v) is not None}
-        wanted = (
-            designed_outputs(frames, v, first_out, vision_rate) & tracked
-            if first_out is not None
-            else tracked
-        )
+        # The decimator starts on the first pose it gets (the first one sent); when nothing came out
+        # before the window (a starved pipeline), assume it started with the window.
+        anchor = min(tracked, default=None)
+        if first_out is not None and (anchor is None or first_out < anchor):
+            anchor = first_out
+        wanted = designed_outputs(frames, v, anchor, vision_rate) & tracked if anchor is not None else set()
         v_expected = len(wanted)
         per_vehicle[v] = {
             "expected": v_expected,

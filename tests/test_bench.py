@@ -16,7 +16,15 @@ import pytest
 from arena_common import bench, px4
 from arena_common.bench_floor import HEADER
 from arena_common.bench_harness import BenchError, latency_stats
-from arena_common.bench_pipeline import analyze_floor, mavlink_frame, odometry_of, payload_sizes
+from arena_common.bench_pipeline import (
+    _f32,
+    _FrameInfo,
+    analyze_arena,
+    analyze_floor,
+    mavlink_frame,
+    odometry_of,
+    payload_sizes,
+)
 from arena_common.mavlink_link import mavlink2
 from tests.conftest import REPO
 
@@ -56,6 +64,44 @@ def test_floor_analysis_counts_lost_and_duplicated_messages() -> None:
     assert found["delivered"] == 15 and found["lost"] == 1
     assert found["duplicates"] == 1
     assert sorted(set(found["latencies"])) == [300, 500]
+
+
+def _odometry(usec: int, p: tuple[float, float, float]) -> bytes:
+    mav = mavlink2.MAVLink(None, srcSystem=245, srcComponent=191)
+    return bytes(mav.odometry_encode(**px4.odometry_args(usec, p, (1.0, 0.0, 0.0, 0.0))).pack(mav))
+
+
+def test_arena_analysis_matches_by_position_and_time() -> None:
+    # 100 frames at 180 Hz; vehicle 0 moves 1 cm per frame; the gateway's clock is 0.123 s off Motive's.
+    period, offset = 5_555_555, 123_456_789
+    frames = [
+        _FrameInfo(
+            k,
+            2_000_000_000 + k * period + 5_380_000,
+            2_000_000_000 + k * period,
+            {0: _f32((0.01 * k, 0.5, -1.0))},
+        )
+        for k in range(100)
+    ]
+    outs = [
+        (f.stamp + 2_000_000, _odometry((f.mid_ns + offset) // 1000, f.positions[0]))  # type: ignore[arg-type]
+        for f in frames
+        if f.fn != 50
+    ]
+    outs.append((frames[60].stamp + 1_000_000, _odometry(frames[60].mid_ns // 1000, (9.0, 9.0, 9.0))))
+    t0, t1 = frames[10].stamp, frames[89].stamp
+
+    every = analyze_arena(frames, {0: outs}, t0, t1, 180.0, vision_rate=400.0)
+    assert (every["expected"], every["delivered"], every["lost"]) == (80, 79, 1)
+    assert every["designed_drops"] == 0 and every["mismatched"] == 1 and every["duplicates"] == 0
+    assert set(every["latencies"]) == {2_000_000}
+
+    # At 50 Hz the decimator wants about one frame in 3.6; what came beyond that is not loss.
+    deployed = analyze_arena(frames, {0: outs}, t0, t1, 180.0, vision_rate=50.0)
+    assert 20 <= deployed["expected"] <= 24
+    assert deployed["expected"] + deployed["designed_drops"] == 80
+    assert deployed["lost"] == 0  # a neighbour of a missing frame may stand in for it: net count
+    assert 79 - deployed["expected"] <= deployed["substituted"] <= 80 - deployed["expected"]
 
 
 def test_payload_sizes_grow_with_bodies() -> None:
