@@ -635,10 +635,27 @@ def _vehicle_sockets(n: int) -> tuple[dict[Any, Any], list[int]]:
 
 
 def _wait_outputs(
-    collector: Collector, n: int, timeout: float, what: str, procs: ProcessSet, since: int
+    collector: Collector,
+    n: int,
+    timeout: float,
+    what: str,
+    procs: ProcessSet,
+    accept: Callable[[bytes], bool] = lambda data: True,
 ) -> None:
+    """Wait until every vehicle's socket received a datagram ``accept`` takes (ODOMETRY, not HEARTBEAT)."""
+    checked = dict.fromkeys(range(n), 0)
+    done: set[int] = set()
+
     def flowing() -> bool:
-        return all(collector.count(i) > since for i in range(n))
+        for i in range(n):
+            if i in done:
+                continue
+            records = collector.records[i]
+            end = len(records)
+            if any(accept(data) for _, data in records[checked[i] : end]):
+                done.add(i)
+            checked[i] = end
+        return len(done) == n
 
     wait_until(flowing, timeout, what, procs)
 
@@ -731,7 +748,7 @@ def run_arena(
             "ingest", "ingest", python_module("services.mocap_ingest", *common), settings.repo
         )
         what = f"ODOMETRY from all {n} gateways at {rate:g} Hz"
-        _wait_outputs(collector, n, settings.start_timeout, what, procs, 0)
+        _wait_outputs(collector, n, settings.start_timeout, what, procs, lambda d: odometry_of(d) is not None)
         time.sleep(settings.warmup)
         procs.check_alive()
         t0 = time.time_ns()
@@ -1034,7 +1051,6 @@ def run_floor(
                 settings.start_timeout,
                 f"the {chain} chain to carry data for {n} vehicles",
                 procs,
-                0,
             )
             time.sleep(settings.warmup)
             t0 = time.time_ns()
