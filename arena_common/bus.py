@@ -76,7 +76,11 @@ def zenoh_config(spec: ZenohSpec | None = None, options: BusOptions | None = Non
         settings["connect/exit_on_failure"] = False
         # Retry soon and often (Zenoh's default starts at 1 s and doubles): a router restarted on the
         # same host is back in well under a second.
-        settings["connect/retry"] = {"period_init_ms": 200, "period_max_ms": 2000, "period_increase_factor": 1.5}
+        settings["connect/retry"] = {
+            "period_init_ms": 200,
+            "period_max_ms": 2000,
+            "period_increase_factor": 1.5,
+        }
     if listen:
         settings["listen/endpoints"] = listen
     settings.update(dict(spec.extra))
@@ -414,7 +418,14 @@ class Queryable:
             key = str(query.key_expr)
             try:
                 raw = query.payload.to_bytes() if query.payload is not None else b""
+                encoding = str(query.encoding) if query.encoding is not None else ""
                 try:
+                    if encoding and wire.type_for_encoding(encoding) is not wire.Command:
+                        raise PayloadError(
+                            f"a query must carry {wire.Command.encoding()}, not {encoding!r}",
+                            key=key,
+                            type_name="Command",
+                        )
                     command = wire.Command.decode(raw, key)
                 except PayloadError as exc:
                     result = wire.CommandResult(False, "ERROR", str(exc))

@@ -543,10 +543,28 @@ def type_for_encoding(encoding: str) -> type[Payload] | None:
 
 
 def decode_any(key: str, raw: bytes, encoding: str = "") -> Payload:
-    """Decode a payload by its encoding when it names a schema, else by its key."""
-    cls = type_for_encoding(encoding) if encoding else None
-    if cls is None:
-        cls = type_for_key(key)
+    """Decode a payload as the type its key carries.
+
+    An encoding that names a schema must name that same type (a ``State`` sent on a vision key is
+    refused, never handed on as a State); keys outside the table are decoded by their encoding.
+    """
+    by_encoding = type_for_encoding(encoding) if encoding else None
+    try:
+        by_key: type[Payload] | None = type_for_key(key)
+    except PayloadError:
+        if by_encoding is None:
+            raise
+        by_key = None
+    if by_key is Command and by_encoding is CommandResult:
+        by_key = CommandResult  # a command key carries the query and its reply
+    if by_key is not None and by_encoding is not None and by_encoding is not by_key:
+        raise PayloadError(
+            f"a {by_encoding.SCHEMA} payload on a key that carries {by_key.SCHEMA}",
+            key=key,
+            type_name=by_key.SCHEMA,
+        )
+    cls = by_key or by_encoding
+    assert cls is not None
     return cls.decode(raw, key)
 
 

@@ -185,6 +185,10 @@ class Ingest:
         routes = self._routes
         tp = time.time_ns()
         fn, t, lat, mts, tsrc = frame.frame_number, frame.t, frame.lat, frame.mts, frame.tsrc
+        if fn < 0 or not math.isfinite(mts):
+            # The fast encoder does not validate: what the wire contract refuses never leaves here.
+            self.svc.reject("bad_frame", f"frame number {fn}, Motive timestamp {mts}")
+            return 0
         out = unknown = 0
         for body in frame.bodies:
             route = routes.get(body.id)

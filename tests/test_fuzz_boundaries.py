@@ -546,11 +546,6 @@ def test_bad_commands_are_answered_error_and_never_reach_the_vehicle(pipe: Pipel
     assert_healthy(pipe, n_deaths)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="bus.Queryable._work decodes every query as Command without looking at the query's encoding: a "
-    "Command sent as 'arena.Command/0' (or any other version or schema) is executed",
-)
 @pytest.mark.parametrize("schema", ["arena.Command/0", "arena.Command/2", "arena.Pose/1"])
 def test_command_with_a_wrong_schema_version_is_refused(pipe: Pipeline, schema: str) -> None:
     raw = wire.Command(op="ping", src="fuzz", timeout=2.0).encode()
@@ -674,7 +669,6 @@ BUG_WRONG_TYPE = (
 )
 
 
-@pytest.mark.xfail(strict=True, reason=BUG_WRONG_TYPE)
 @pytest.mark.parametrize(
     ("key", "payload"),
     [
@@ -697,11 +691,6 @@ def test_another_type_on_a_gateway_key_is_refused(
         gw.event(t0, "estop (fuzz)")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="VisionSender.offer sends any finite position: 1e300 m cannot be packed as MAVLink's float32, "
-    "msg.pack raises OverflowError in the gateway's vision thread, which dies (no more vision)",
-)
 def test_vision_pose_beyond_float32_is_refused(gw: GatewayRig, deaths: ThreadDeaths) -> None:
     n = len(deaths.deaths)
     gw.feeding = False
@@ -715,12 +704,6 @@ def test_vision_pose_beyond_float32_is_refused(gw: GatewayRig, deaths: ThreadDea
     assert not gw.ap.tap.invalid
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="VisionSender.offer accepts a pose stamped in the future (only too old is checked): it reaches "
-    "the autopilot with that time_usec and every later pose is refused as 'not newer than the last pose "
-    "sent', so vision stops for good",
-)
 def test_vision_pose_from_the_future_is_refused(gw: GatewayRig, deaths: ThreadDeaths) -> None:
     n = len(deaths.deaths)
     p = gw.ap.true_pose().position
@@ -732,11 +715,6 @@ def test_vision_pose_from_the_future_is_refused(gw: GatewayRig, deaths: ThreadDe
     still_working(gw, deaths, n)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="SetpointForwarder.check only asks yaw/yaw rate to be finite: yaw=1e300 cannot be packed as "
-    "float32, msg.pack raises OverflowError in the setpoint thread, which dies (no setpoint ever again)",
-)
 @pytest.mark.parametrize("field", ["yaw", "yr"])
 def test_setpoint_yaw_beyond_float32_is_refused(gw: GatewayRig, deaths: ThreadDeaths, field: str) -> None:
     n = len(deaths.deaths)
@@ -792,12 +770,6 @@ def test_unsafe_setpoints_and_commands_are_refused_with_a_reason(
     assert not deaths.since(n)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="CommandExecutor._goto accepts any finite yaw: with yaw=1e300 the first SET_POSITION_TARGET "
-    "cannot be packed (OverflowError; the command answers ERROR) but the goto stream stays, and the "
-    "setpoint thread dies on its next send: no setpoint reaches the vehicle any more",
-)
 def test_goto_with_a_yaw_beyond_float32_is_refused_in_flight(gw: GatewayRig, deaths: ThreadDeaths) -> None:
     n = len(deaths.deaths)
     gw.fly()
@@ -882,13 +854,6 @@ def forged_frame(system_id: int, msgid: int = 0xABCDEF) -> bytes:
     return header + msgid.to_bytes(3, "little") + payload + b"\x00\x00"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="mavlink_link: on UDP, FrameSplitter(stream=False) accepts frames of an unknown message id "
-    "without any CRC check, and MavlinkLink.read then calls accept_source(sender): one forged datagram "
-    "with the vehicle's system id diverts the gateway's output (ODOMETRY, setpoints, commands) to its "
-    "sender until the vehicle's next frame",
-)
 def test_a_corrupt_frame_with_the_vehicles_id_does_not_divert_the_link(gw: GatewayRig) -> None:
     port = int(gw.cfg.vehicle("d1").mavlink.rsplit(":", 1)[1])
     got = 0
@@ -1032,13 +997,6 @@ def test_mutated_motive_captures_into_the_ingest_socket(ingest: IngestRig, death
     )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="services/mocap_ingest.py encode_pose (the fast path, no validation) publishes whatever the frame "
-    "says: a negative frame number (the wire wants fn >= 0) or a NaN Motive timestamp (mts must be finite) "
-    "make a MocapPose that every consumer refuses as bad_payload; the ingest should refuse (and count) such "
-    "frames",
-)
 @pytest.mark.parametrize("change", [{"frame_number": -5}, {"timestamp": math.nan}], ids=["fn<0", "mts=NaN"])
 def test_ingest_publishes_only_valid_payloads(ingest: IngestRig, change: dict[str, Any]) -> None:
     ingest.sub.channel.drain()
@@ -1227,33 +1185,18 @@ def test_cli_arguments_that_are_not_numbers_or_names(tmp_path: Path, router_endp
         assert code == 1 and "error" in out, (args, code, out)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="cli/_flight.py goto: a negative DOWN (every height above the floor) is parsed as an option: "
-    "'arena goto d1 1 0 -1' fails with 'No such option: -1' unless written 'arena goto d1 -- 1 0 -1'",
-)
 def test_cli_goto_accepts_a_negative_down(tmp_path: Path, router_endpoint: str) -> None:
     cfg = write_arena_config(tmp_path, services=(), endpoint=router_endpoint)
     _, out = run_cli("goto", "d1", "1", "0", "-1", "-c", str(cfg), "--timeout", "1")
     assert "No such option" not in out, out
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="cli/_flight.py _act calls _targets (Arena.vehicle → keys.validate_name) outside its "
-    "try/except ArenaError: an invalid vehicle name ends in an InvalidName traceback, not a clean error",
-)
 def test_cli_invalid_vehicle_name_is_a_clean_error(tmp_path: Path, router_endpoint: str) -> None:
     cfg = write_arena_config(tmp_path, services=(), endpoint=router_endpoint)
     code, out = run_cli("arm", "bad*name", "-c", str(cfg), "--timeout", "1")
     assert code in (1, 2) and "error" in out.lower(), (code, out)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="cli/_flight.py _act opens the Arena (open_bus) outside its try/except ArenaError: a router that "
-    "cannot be reached ends in a BusError traceback instead of a clean error",
-)
 def test_cli_unreachable_router_is_a_clean_error(tmp_path: Path) -> None:
     cfg = write_arena_config(tmp_path, services=())  # nobody listens on its router
     code, out = run_cli("arm", "d1", "-c", str(cfg), "--mode", "client", "--timeout", "1")

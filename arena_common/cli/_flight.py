@@ -197,14 +197,14 @@ def _targets(arena: Arena, target: str) -> list[Vehicle]:
 def _act(
     target: str, config: Any, mode: str | None, connect: list[str] | None, what: str, action: Any
 ) -> None:
-    with _arena(config, mode, connect) as arena:
-        vehicles = _targets(arena, target)
-        try:
+    try:
+        with _arena(config, mode, connect) as arena:
+            vehicles = _targets(arena, target)
             arena.swarm(v.name for v in vehicles).run(action)
-        except ArenaError as exc:
-            err_console.print(f"[red]error:[/] {exc}")
-            raise typer.Exit(1) from None
-        console.print(f"{what}: {', '.join(v.name for v in vehicles)} [green]ok[/]")
+    except ArenaError as exc:
+        err_console.print(f"[red]error:[/] {exc}")
+        raise typer.Exit(1) from None
+    console.print(f"{what}: {', '.join(v.name for v in vehicles)} [green]ok[/]")
 
 
 def arm(
@@ -294,9 +294,13 @@ def estop(
     connect: ConnectOpt = None,
 ) -> None:
     """Stop everything: every vehicle lands at once (or cuts its motors with --kill)."""
-    with _arena(config, mode, connect) as arena:
-        arena.estop(kill=kill_motors, reason=reason)
-        time.sleep(0.2)  # let the reliable publication leave before the session closes
+    try:
+        with _arena(config, mode, connect) as arena:
+            arena.estop(kill=kill_motors, reason=reason)
+            time.sleep(0.2)  # let the reliable publication leave before the session closes
+    except ArenaError as exc:
+        err_console.print(f"[red]error:[/] ESTOP NOT SENT: {exc}")
+        raise typer.Exit(1) from None
     console.print("[red]ESTOP[/] sent: " + ("kill motors" if kill_motors else "land every vehicle"))
 
 
@@ -304,6 +308,8 @@ def register(app: typer.Typer) -> None:
     """Add the flight commands to ``app``."""
     app.command("status")(status)
     app.command("top")(top)
-    for fn in (arm, disarm, takeoff, land, hold, goto, kill):
+    for fn in (arm, disarm, takeoff, land, hold, kill):
         app.command(fn.__name__)(fn)
+    # Heights above the floor are negative downs: let "-1.0" be a value, not an unknown option.
+    app.command("goto", context_settings={"ignore_unknown_options": True})(goto)
     app.command("estop")(estop)
