@@ -197,6 +197,8 @@ class Gateway:
         self._lost_since: float | None = None
         self._next_reopen = 0.0
         self._started = False
+        self._failures: set[tuple[str, str]] = set()
+        self._link_counts: dict[str, int] = {}
 
     # -- lifetime ------------------------------------------------------------------------------------
     def start(self) -> Gateway:
@@ -272,6 +274,7 @@ class Gateway:
             stop.wait(max(0.0, min(next_state, next_second) - time.monotonic()))
 
     def _every_second(self, now: float) -> None:
+        self._count_link_rejects()
         self.link.send(
             self.link.mav.heartbeat_encode(
                 MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, px4.MAV_STATE_ACTIVE
@@ -287,6 +290,39 @@ class Gateway:
                 "answered": ts.answered,
             }
             self._safe(self.telemetry.put, "timesync", fields, wire.now_ns())
+
+    def _count_link_rejects(self) -> None:
+        """Publish what the link dropped since the last call as rejects with a reason."""
+        link = self.link
+        totals = {
+            "mavlink: foreign system": link.foreign,
+            "mavlink: bad crc": link.bad_crc,
+            "mavlink: unchecked frame": link.unchecked,
+            "mavlink: undecodable": link.decode_errors,
+            "mavlink: cannot pack": link.pack_errors,
+        }
+        for reason, total in totals.items():
+            self._reject_n(reason, total - self._link_counts.get(reason, 0))
+            self._link_counts[reason] = total
+        garbage = link.garbage - self._link_counts.get("garbage", 0)
+        self._link_counts["garbage"] = link.garbage
+        if garbage > 0:
+            self.stats.count("mavlink_garbage_bytes", garbage)
+            self.stats.reject("mavlink: garbage")
+
+    def _reject_n(self, reason: str, n: int) -> None:
+        for _ in range(max(0, n)):
+            self.stats.reject(reason)
+
+    def _failed(self, what: str, exc: BaseException) -> None:
+        """One sample made a loop fail: count it, log the first of each kind, and go on."""
+        self.stats.reject(f"{what}: error")
+        key = (what, type(exc).__name__)
+        if key not in self._failures:
+            self._failures.add(key)
+            self.log.error(
+                "%s: %s: %s (counted as '%s: error'; going on)", what, key[1], exc, what, exc_info=exc
+            )
 
     def _supervise_link(self, now: float) -> None:
         if not self.link.is_open:
@@ -425,7 +461,12 @@ class Gateway:
     def _read_loop(self) -> None:
         link, handlers, tele, stats = self.link, self._handlers, self.telemetry, self.stats
         while not self._stop.is_set():
-            frames = link.read(0.1)
+            try:
+                frames = link.read(0.1)
+            except Exception as exc:
+                self._failed("mavlink", exc)
+                self._stop.wait(0.05)
+                continue
             if not frames:
                 continue
             if self.gcs is not None:
@@ -443,22 +484,36 @@ class Gateway:
                 if handler is not None:
                     try:
                         handler(msg, now)
-                    except Exception:  # a malformed message must not stop the link
-                        self.log.exception("handling %s", msg.get_type())
+                    except Exception as exc:  # a malformed message must not stop the link
+                        self._failed(f"mavlink: handling {msg.get_type()}", exc)
                 if due:
-                    self._safe(tele.publish, msg, now, t_ns)
+                    try:
+                        tele.publish(msg, now, t_ns)
+                    except Exception as exc:  # the bus is closing, or a field msgpack cannot carry
+                        self._failed("telemetry", exc)
 
     def _vision_loop(self, sub: Subscription) -> None:
+        dropped = 0
         while not self._stop.is_set():
             item = sub.get(0.2)
+            # Samples overwritten in the one-slot ring before this thread took them.
+            superseded, dropped = sub.channel.dropped - dropped, sub.channel.dropped
+            self._reject_n("vision: superseded", superseded)
             if item is None:
                 continue
             self.stats.count("in")
             if item.error is not None or item.payload is None:
                 self.stats.reject("vision: undecodable")
                 continue
-            pose: wire.Pose = item.payload
-            reason = self.vision.offer(pose)
+            pose = item.payload
+            if not isinstance(pose, wire.Pose):
+                self.stats.reject("vision: not a Pose")
+                continue
+            try:
+                reason = self.vision.offer(pose)
+            except Exception as exc:  # one sample must never end the vision for good
+                self._failed("vision", exc)
+                continue
             if reason is None:
                 self.stats.latency((wire.now_ns() - pose.t) * 1e-9)
             else:
@@ -472,7 +527,13 @@ class Gateway:
             if item.error is not None or item.payload is None:
                 self.stats.reject("estop: undecodable")
                 continue
-            self.estop(item.payload)
+            if not isinstance(item.payload, wire.Estop):
+                self.stats.reject("estop: not an Estop")
+                continue
+            try:
+                self.estop(item.payload)
+            except Exception as exc:  # the next estop must still work
+                self._failed("estop", exc)
 
     def estop(self, e: wire.Estop) -> str:
         """Land (or kill the motors when ``e.kill``) at once; the autopilot's result."""

@@ -46,7 +46,7 @@ from typing import Any
 from arena_common import px4, wire
 from arena_common.config import ArenaSpec, VehicleSpec
 from arena_common.gateway_parts import EventSink, TimeSync, VehicleState, VisionSender
-from arena_common.gateway_setpoints import SetpointForwarder, outside
+from arena_common.gateway_setpoints import SetpointForwarder, outside, yaw_problem
 from arena_common.mavlink_protocols import MavCommander, ParamClient, SetupChecker, param_equal
 
 __all__ = ["CommandExecutor"]
@@ -272,6 +272,11 @@ class CommandExecutor:
         yaw = _number(args, "yaw") if args.get("yaw") is not None else self.state.yaw()
         tol = _number(args, "tol", self.goto_tolerance)
         wait = bool(args.get("wait", False))
+        problem = yaw_problem(yaw)
+        if problem:  # every argument is checked before the stream starts
+            raise _BadArgs(problem)
+        if tol <= 0.0:
+            raise _BadArgs(f"argument 'tol' must be a positive distance in metres, got {tol!r}")
         where = outside(goal, self.arena.safe_box())
         if where:
             return _refused(f"goal outside the safe volume: {where}")

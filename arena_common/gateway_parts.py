@@ -447,9 +447,11 @@ class VisionSender:
     """Sends each fresh, valid pose once as ODOMETRY (or VISION_POSITION_ESTIMATE); never resends.
 
     A pose is dropped when it is not tracked (``ok`` false), older than ``max_pose_age`` s by its own
-    ``t``, or not newer than the last one sent.  The reset counter is bumped when the pose's ``rc``
-    changes, when the position jumps (more than ``jump_m`` and faster than ``jump_speed``), or on
-    :meth:`bump_reset` (a calibration change).
+    ``t`` (checked again just before the frame is written), stamped more than ``max_pose_age`` s in the
+    future, not newer than the last one sent, or out of range (a coordinate beyond ±``max_position`` m, a
+    speed beyond ``max_speed`` m/s or rad/s, anything not finite).  The reset counter is bumped when the
+    pose's ``rc`` changes, when the position jumps (more than ``jump_m`` and faster than ``jump_speed``),
+    or on :meth:`bump_reset` (a calibration change).
     """
 
     def __init__(
@@ -461,6 +463,8 @@ class VisionSender:
         send_velocity: bool = True,
         jump_m: float = 0.5,
         jump_speed: float = 5.0,
+        max_position: float = 1e4,
+        max_speed: float = 1e3,
         stats: Stats | None = None,
     ) -> None:
         if message not in ("odometry", "vision_position_estimate"):
@@ -473,6 +477,8 @@ class VisionSender:
         self.send_velocity = send_velocity
         self.jump_m = jump_m
         self.jump_speed = jump_speed
+        self.max_position = max_position
+        self.max_speed = max_speed
         self.stats = stats or Stats()
         self.reset_counter = 0
         self.sent = 0
@@ -490,11 +496,17 @@ class VisionSender:
         """Send ``pose`` if it may be sent; the reason it was not, else None."""
         if not pose.ok:
             return "not tracked"
+        clock_given = now_ns is not None
         now_ns = wire.now_ns() if now_ns is None else now_ns
         if now_ns - pose.t > self.max_age_ns:
             return "stale"
+        if pose.t - now_ns > self.max_age_ns:
+            return "from the future"  # once sent, every later pose would be refused as not newer
         if pose.t <= self.last_t:
             return "not newer than the last pose sent"
+        with_velocity = pose.vok and self.send_velocity
+        if not self._in_range(pose, with_velocity):
+            return "out of range"
         p = pose.p
         if self._last_rc is not None and pose.rc != self._last_rc:
             self.bump_reset()
@@ -504,6 +516,7 @@ class VisionSender:
             if dist > self.jump_m and dist > self.jump_speed * dt:
                 self.bump_reset()
         self._last_rc = pose.rc
+        packs = self.link.pack_errors
         usec = pose.t // 1000
         mav = self.link.mav
         if self.message == "odometry":
@@ -511,9 +524,9 @@ class VisionSender:
                 usec,
                 p,
                 pose.q,
-                pose.v if pose.vok and self.send_velocity else None,
+                pose.v if with_velocity else None,
                 reset_counter=self.reset_counter,
-                angular_velocity_frd=pose.w if pose.vok and self.send_velocity else None,
+                angular_velocity_frd=pose.w if with_velocity else None,
             )
             msg = mav.odometry_encode(**args)
         else:
@@ -522,8 +535,16 @@ class VisionSender:
             msg = mav.vision_position_estimate_encode(
                 usec, p[0], p[1], p[2], roll, pitch, yaw, cov, self.reset_counter
             )
-        if not self.link.send(msg):
-            return "link down"
+        deadline_ns = pose.t + self.max_age_ns
+
+        def fresh() -> bool:
+            # The thread may have been stopped (a frozen process, a long pause) since the age check.
+            return clock_given or wire.now_ns() <= deadline_ns
+
+        if not self.link.send(msg, fresh=fresh):
+            if not fresh():
+                return "stale"
+            return "cannot be packed" if self.link.pack_errors > packs else "link down"
         self.last_t = pose.t
         self.last_p = p
         self.sent += 1
@@ -533,6 +554,16 @@ class VisionSender:
         self.stats.count("vision")
         self.stats.count("out")
         return None
+
+    def _in_range(self, pose: wire.Pose, with_velocity: bool) -> bool:
+        lim, vlim = self.max_position, self.max_speed
+        if not all(math.isfinite(c) and abs(c) <= lim for c in pose.p):
+            return False
+        if not all(math.isfinite(c) and abs(c) <= 2.0 for c in pose.q):
+            return False
+        if with_velocity:
+            return all(math.isfinite(c) and abs(c) <= vlim for c in (*pose.v, *pose.w))
+        return True
 
     def rate(self, now: float) -> float:
         """Poses sent over the last second."""

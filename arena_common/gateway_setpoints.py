@@ -5,8 +5,9 @@ The rules, in the order they apply:
 - A setpoint (:class:`~arena_common.wire.Setpoint`, arena NED) is refused — an Event of kind
   ``safety`` says why, and it never reaches the vehicle — when it does not decode (NaN, infinity…), when
   its position lies outside ``arena.safe_box()``, when its horizontal speed exceeds ``arena.max_speed``
-  or its vertical speed ``arena.max_climb``, or when it is a velocity that leads further out of the safe
-  volume while the vehicle already is outside it.
+  or its vertical speed ``arena.max_climb``, when its yaw lies beyond ±``MAX_YAW`` rad (a yaw within is
+  wrapped to ±π) or its yaw rate beyond ``MAX_YAW_RATE``, or when it is a velocity that leads further out
+  of the safe volume while the vehicle already is outside it.
 - An accepted setpoint is sent at once as SET_POSITION_TARGET_LOCAL_NED (MAV_FRAME_LOCAL_NED, type mask
   from the fields given) and repeated at ``rate`` Hz while its lease runs (``lease`` s from its arrival,
   renewed by every accepted setpoint).  When the lease expires, streaming stops (an Event says so): the
@@ -23,6 +24,7 @@ The rules, in the order they apply:
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -36,9 +38,28 @@ from arena_common.gateway_parts import EventSink
 from arena_common.mavlink_link import MavlinkLink
 from arena_common.service import Stats
 
-__all__ = ["SetpointForwarder", "type_mask"]
+__all__ = ["MAX_YAW", "MAX_YAW_RATE", "SetpointForwarder", "type_mask", "wrap_yaw", "yaw_problem"]
 
 Vec3 = tuple[float, float, float]
+
+MAX_YAW = 1000.0  # rad: a larger yaw is a mistake, not a heading (it would not even fit MAVLink's float32)
+MAX_YAW_RATE = 2.0 * math.pi  # rad/s
+
+_log = logging.getLogger("arena.gateway.setpoints")
+
+
+def yaw_problem(yaw: float | None, yr: float | None = None) -> str | None:
+    """Why a yaw (rad) or yaw rate (rad/s) must not reach the vehicle, or None."""
+    if yaw is not None and not (math.isfinite(yaw) and abs(yaw) <= MAX_YAW):
+        return f"yaw {yaw!r} rad is not a finite angle within ±{MAX_YAW:g} rad"
+    if yr is not None and not (math.isfinite(yr) and abs(yr) <= MAX_YAW_RATE):
+        return f"yaw rate {yr!r} rad/s beyond ±{MAX_YAW_RATE:.2f} rad/s"
+    return None
+
+
+def wrap_yaw(yaw: float | None) -> float | None:
+    """``yaw`` wrapped to [-π, π] (None stays None); check it with :func:`yaw_problem` first."""
+    return None if yaw is None else math.remainder(yaw, 2.0 * math.pi)
 
 
 def type_mask(sp: wire.Setpoint) -> int:
@@ -122,6 +143,9 @@ class SetpointForwarder:
         values = [*(sp.p or ()), *(sp.v or ()), sp.yaw or 0.0, sp.yr or 0.0]
         if not all(math.isfinite(x) for x in values):
             return "not a finite number"
+        problem = yaw_problem(sp.yaw, sp.yr)
+        if problem:
+            return problem
         if sp.p is not None:
             where = outside(sp.p, self.box)
             if where:
@@ -158,7 +182,7 @@ class SetpointForwarder:
         with self._lock:
             if self._stream is not None and self._stream.source == "goto":
                 self.events.emit("info", "user setpoints take over from goto", 6)
-            self._stream = _Stream("user", sp.p, sp.v, sp.yaw, sp.yr, type_mask(sp), now + sp.lease)
+            self._stream = _Stream("user", sp.p, sp.v, wrap_yaw(sp.yaw), sp.yr, type_mask(sp), now + sp.lease)
             if self._latched is not None:
                 self.events.emit(
                     "safety",
@@ -171,7 +195,14 @@ class SetpointForwarder:
         return None
 
     def start_goto(self, goal: Vec3, yaw: float | None, now: float | None = None) -> None:
-        """Stream toward ``goal`` (checked by the caller) and hold it; releases the latch."""
+        """Stream toward ``goal`` (checked by the caller) and hold it; releases the latch.
+
+        The caller checks the goal and the yaw (:func:`yaw_problem`); a yaw out of range is a ValueError.
+        """
+        problem = yaw_problem(yaw)
+        if problem:
+            raise ValueError(problem)
+        yaw = wrap_yaw(yaw)
         now = time.monotonic() if now is None else now
         start = self.position() or goal
         mask = px4.TYPEMASK_VELOCITY | px4.TYPEMASK_ACCELERATION | px4.TYPEMASK_YAW_RATE_IGNORE
@@ -287,15 +318,27 @@ class SetpointForwarder:
 
     def run(self, sub: Subscription, stop: threading.Event) -> None:
         """The forwarder's thread: take setpoints from ``sub`` and stream until ``stop``."""
+        failed: set[str] = set()
         while not stop.is_set():
-            wait = self.tick()
-            item = sub.get(max(0.001, min(wait, 0.05)))
-            if item is None:
-                continue
-            if item.error is not None or item.payload is None:
-                self.refuse(f"undecodable: {item.error}")
-                continue
-            self.offer(item.payload)
+            try:
+                wait = self.tick()
+                item = sub.get(max(0.001, min(wait, 0.05)))
+                if item is None:
+                    continue
+                if item.error is not None or item.payload is None:
+                    self.refuse(f"undecodable: {item.error}")
+                    continue
+                if not isinstance(item.payload, wire.Setpoint):
+                    self.refuse(f"not a Setpoint but a {type(item.payload).__name__}")
+                    continue
+                self.offer(item.payload)
+            except Exception as exc:  # one bad sample (or send) must never end the stream for good
+                self.stats.reject("setpoint: error")
+                what = type(exc).__name__
+                if what not in failed:
+                    failed.add(what)
+                    _log.exception("setpoint thread: %s (counted as 'setpoint: error'; going on)", what)
+                stop.wait(0.01)
 
 
 def _toward(p: Vec3, goal: Vec3, step_xy: float, step_z: float) -> Vec3:

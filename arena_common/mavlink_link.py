@@ -91,12 +91,17 @@ class MavlinkLinkError(ArenaError):
 
 @dataclass(frozen=True, slots=True)
 class Frame:
-    """One whole MAVLink frame as it travelled (header, payload, CRC, signature)."""
+    """One whole MAVLink frame as it travelled (header, payload, CRC, signature).
+
+    ``checked`` is False for a datagram's frame of a message id unknown to the dialects: its CRC could
+    not be checked, so it may be forwarded but never trusted (decoded, or used to learn the peer).
+    """
 
     msgid: int
     sysid: int
     compid: int
     raw: bytes
+    checked: bool = True
 
 
 def _crc_ok(frame: bytes, header_len: int, payload_len: int, msgid: int) -> bool | None:
@@ -165,7 +170,7 @@ class FrameSplitter:
                 self.bad_crc += 1
                 i += 1
                 continue
-            out.append(Frame(msgid, sysid, compid, raw))
+            out.append(Frame(msgid, sysid, compid, raw, checked=crc is True))
             i += total
         if self.stream:
             del self._buf[:i]
@@ -430,6 +435,11 @@ class MavlinkLink:
             signing.attach(self.mav)  # the decoder stays keyless: read() verifies before decoding
         self.frames_in = 0
         self.foreign = 0
+        self.bad_crc = 0  # frames refused for their CRC (or unknown in a byte stream), over every opening
+        self.garbage = 0  # bytes that were no frame, over every opening
+        self.unchecked = 0  # frames of the vehicle whose CRC could not be checked (unknown message id)
+        self.pack_errors = 0
+        self.last_pack_error = ""
         self.frames_out = 0
         self.send_errors = 0
         self.decode_errors = 0
@@ -493,14 +503,22 @@ class MavlinkLink:
         out: list[Frame] = []
         sid = self.system_id
         signing = self.signing
+        splitter = self._splitter
         for data, addr in chunks:
-            frames = self._splitter.feed(data)
+            bad_crc, garbage = splitter.bad_crc, splitter.garbage
+            frames = splitter.feed(data)
+            self.bad_crc += splitter.bad_crc - bad_crc
+            self.garbage += splitter.garbage - garbage
             mine = [f for f in frames if f.sysid == sid]
             self.foreign += len(frames) - len(mine)
             if signing is not None and mine:
                 mine = [f for f in mine if self._verified(signing, f)]
             if mine:
-                t.accept_source(addr)
+                # Only a frame whose CRC was checked may tell where the vehicle is: a corrupt or forged
+                # datagram of an unknown message id must never divert our output.
+                if any(f.checked for f in mine):
+                    t.accept_source(addr)
+                self.unchecked += sum(1 for f in mine if not f.checked)
                 out.extend(mine)
         self.frames_in += len(out)
         return out
@@ -515,6 +533,8 @@ class MavlinkLink:
 
     def decode(self, frame: Frame) -> Any:
         """The pymavlink message of a frame, or None when it cannot be decoded."""
+        if not frame.checked:
+            return None
         try:
             msg = self._decoder.decode(bytearray(frame.raw))
         except (mavlink2.MAVError, struct.error, IndexError, ValueError):
@@ -525,15 +545,29 @@ class MavlinkLink:
         return msg
 
     # -- output --------------------------------------------------------------------------------------
-    def send(self, msg: Any) -> bool:
-        """Encode and write one message; False when the link is closed, has no peer yet, or failed."""
+    def send(self, msg: Any, fresh: Callable[[], bool] | None = None) -> bool:
+        """Encode and write one message; False when the link is closed, has no peer yet, or failed.
+
+        Never raises for the message: one that cannot be packed (a value beyond its field's type) is
+        counted in :attr:`pack_errors` and not sent.  ``fresh``, when given, is asked once the frame is
+        packed, just before it is written: False drops the frame (it became too old while waiting).
+        """
         with self._lock:
             t = self._transport
             if t is None or not t.can_send():
                 return False
             if self.signing is not None:
                 self.signing.refresh()
-            buf = msg.pack(self.mav)
+            seq = self.mav.seq
+            try:
+                buf = msg.pack(self.mav)
+            except Exception as exc:  # a value beyond its field's type: that message only, never the loop
+                self.mav.seq = seq
+                self.pack_errors += 1
+                self.last_pack_error = f"{type(msg).__name__}: {exc}"
+                return False
+            if fresh is not None and not fresh():
+                return False
             self.mav.seq = (self.mav.seq + 1) % 256
             return self._write(t, buf)
 
@@ -619,7 +653,7 @@ class GcsForwarder:
         sent = 0
         for data, addr in chunks:
             frames = self._splitter.feed(data)
-            if frames:
+            if any(f.checked for f in frames):
                 t.accept_source(addr)
             keep = [f for f in frames if self.allow_manual or f.msgid not in self.BLOCKED]
             self.blocked += len(frames) - len(keep)
