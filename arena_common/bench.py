@@ -822,7 +822,7 @@ def rerender(path: Path, docs: Path, console: Console | None = None) -> None:
     """Write the docs block (and print the tables) from a stored result."""
     result = load_result(path)
     update_docs(docs, result)
-    console = console or Console()
+    console = console or Console(width=None if sys.stdout.isatty() else 160)
     points = [PointResult(**p) for p in result.get("points", [])]
     if points:
         console.print(_rich("End-to-end latency", LATENCY_HEADER, latency_rows(points)))
