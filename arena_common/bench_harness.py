@@ -6,9 +6,9 @@ socket receives it (the same datagram the ingest receives, at the same instant o
 MAVLink frame the gateway sends to the harness's vehicle socket.  The harness's own scheduling therefore
 never enters a figure: a :class:`Collector` thread only drains the sockets and keeps ``(stamp, bytes)``.
 
-CPU is read from ``/proc``: the sum over a process's threads of ``/proc/<pid>/task/<tid>/schedstat``
-(nanoseconds on a CPU), or ``utime + stime`` of ``/proc/<pid>/stat`` (clock ticks) where schedstat is
-missing.  Memory is ``VmRSS`` of ``/proc/<pid>/status``.
+CPU is read from ``/proc``: ``utime + stime`` of ``/proc/<pid>/stat`` (clock ticks, every thread, the
+ended ones too), or for short windows the sum of ``/proc/<pid>/task/<tid>/schedstat`` (nanoseconds).
+Memory is ``VmRSS`` of ``/proc/<pid>/status``.
 """
 
 from __future__ import annotations
@@ -166,23 +166,29 @@ class Collector:
 # -- processes -----------------------------------------------------------------------------------------------
 
 
-def cpu_ns(pid: int) -> int | None:
-    """CPU time used so far by process ``pid`` (all threads), in ns; ``None`` when it is gone."""
-    total = 0
-    try:
-        tids = os.listdir(f"/proc/{pid}/task")
-    except OSError:
-        return None
-    found = False
-    for tid in tids:
+def cpu_ns(pid: int, precise: bool = False) -> int | None:
+    """CPU time used so far by process ``pid`` (all threads), in ns; ``None`` when it is gone.
+
+    By default ``utime + stime`` of ``/proc/<pid>/stat`` (clock ticks; it keeps the time of threads
+    that have exited).  ``precise`` sums ``/proc/<pid>/task/*/schedstat`` instead (nanoseconds, but only
+    for the threads alive now: use it over windows in which no thread ends).
+    """
+    if precise:
+        total = 0
+        found = False
         try:
-            with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
-                total += int(f.read().split()[0])
-                found = True
-        except (OSError, ValueError, IndexError):
-            continue
-    if found:
-        return total
+            tids = os.listdir(f"/proc/{pid}/task")
+        except OSError:
+            return None
+        for tid in tids:
+            try:
+                with open(f"/proc/{pid}/task/{tid}/schedstat") as f:
+                    total += int(f.read().split()[0])
+                    found = True
+            except (OSError, ValueError, IndexError):
+                continue
+        if found:
+            return total
     try:
         with open(f"/proc/{pid}/stat") as f:
             fields = f.read().rsplit(")", 1)[1].split()

@@ -56,9 +56,9 @@ def mavproxy_command() -> str | None:
 
 def _cpu_window(pid: int, seconds: float) -> float:
     """CPU seconds ``pid`` used over the next ``seconds``."""
-    a = cpu_ns(pid)
+    a = cpu_ns(pid, precise=True)
     time.sleep(seconds)
-    b = cpu_ns(pid)
+    b = cpu_ns(pid, precise=True)
     if a is None or b is None:
         raise BenchError(f"process {pid} went away while measuring")
     return (b - a) / 1e9
@@ -141,14 +141,14 @@ def _run_gateway(rate: float, settings: RunSettings) -> dict[str, Any]:
         collector.clear()
         sent: dict[int, int] = {}
         stop = threading.Event()
-        a = cpu_ns(gw.pid)
+        a = cpu_ns(gw.pid, precise=True)
         t0 = time.monotonic()
         for k in iter_schedule(rate, stop, duration):
             t_send, p = pose(k + 1)
             pub.put(p)
             sent[p.t // 1000] = t_send
         elapsed = time.monotonic() - t0
-        b = cpu_ns(gw.pid)
+        b = cpu_ns(gw.pid, precise=True)
         time.sleep(settings.drain)
         procs.check_alive()
         if a is None or b is None:
@@ -219,7 +219,7 @@ def _run_mavproxy(rate: float, settings: RunSettings, command: str) -> dict[str,
         # Each frame is encoded just before it is sent; its send time is taken after encoding.
         sent: dict[int, int] = {}
         stop = threading.Event()
-        a = cpu_ns(mp.pid)
+        a = cpu_ns(mp.pid, precise=True)
         t0 = time.monotonic()
         for k in iter_schedule(rate, stop, duration):
             _, data = frame(k + 1)
@@ -228,7 +228,7 @@ def _run_mavproxy(rate: float, settings: RunSettings, command: str) -> dict[str,
             sent[od[0]] = time.time_ns()
             tx.sendto(data, ("127.0.0.1", master))
         elapsed = time.monotonic() - t0
-        b = cpu_ns(mp.pid)
+        b = cpu_ns(mp.pid, precise=True)
         time.sleep(settings.drain)
         procs.check_alive()
         if a is None or b is None:
