@@ -185,10 +185,13 @@ class Ingest:
         routes = self._routes
         tp = time.time_ns()
         fn, t, lat, mts, tsrc = frame.frame_number, frame.t, frame.lat, frame.mts, frame.tsrc
-        if fn < 0 or not math.isfinite(mts):
-            # The fast encoder does not validate: what the wire contract refuses never leaves here.
-            self.svc.reject("bad_frame", f"frame number {fn}, Motive timestamp {mts}")
+        # The fast encoder does not validate: what the wire contract refuses never leaves here.
+        if fn < 0:
+            self.svc.reject("bad_frame", f"frame number {fn}")
             return 0
+        if not math.isfinite(mts):
+            self.svc.reject("bad_timestamp", f"Motive timestamp {mts} in frame {fn}; sent as 0")
+            mts = 0.0
         out = unknown = 0
         for body in frame.bodies:
             route = routes.get(body.id)

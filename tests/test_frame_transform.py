@@ -208,12 +208,12 @@ def test_bad_payloads_are_counted_and_the_service_lives(
 
         def counted() -> wire.Stats | None:
             s = latest_stats(stats, "transform")
-            return s if s and s.rejected.get("bad_payload", 0) == 3 and "wrong_type" in s.rejected else None
+            # The Pose on a mocap key is refused by its decoder (its encoding names another type).
+            return s if s and s.rejected.get("bad_payload", 0) == 4 else None
 
         snap = wait_for(counted, timeout=10, interval=0.1, what="rejections in the stats")
     assert snap.counts["in"] >= 6 and snap.counts["out"] >= 2
     assert snap.counts["invalid"] >= 1  # the warm-up samples
-    assert snap.rejected["wrong_type"] == 1
 
 
 def test_runs_as_a_process(tmp_path: Path, router_endpoint: str, bus_factory: Callable[[], Bus]) -> None:
