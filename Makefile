@@ -28,6 +28,7 @@ lint: $(STAMP)
 	$(BIN)/python -m arena_common.wiredoc --check
 
 bench: $(STAMP)
+	$(BIN)/python -m pip install -q -e '.[bench]'
 	$(BIN)/arena bench
 
 soak: $(STAMP)
