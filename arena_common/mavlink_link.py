@@ -35,6 +35,7 @@ import socket
 import struct
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -198,28 +199,31 @@ def _host_port(rest: str, url: str) -> tuple[str, int]:
     return host, int(port)
 
 
-class _Transport:
+class _Transport(ABC):
     """Raw bytes in and out of one kind of connection."""
 
     stream = True
 
+    @abstractmethod
     def fileno(self) -> int | None:
-        raise NotImplementedError
+        """The descriptor to wait on, if any."""
 
+    @abstractmethod
     def read(self) -> list[tuple[bytes, Any]]:
         """Whatever is waiting, as (bytes, source address) chunks; never blocks."""
-        raise NotImplementedError
 
+    @abstractmethod
     def write(self, data: bytes) -> None:
-        raise NotImplementedError
+        """Send bytes to the peer."""
 
+    @abstractmethod
     def close(self) -> None:
-        raise NotImplementedError
+        """Release the connection."""
 
     def can_send(self) -> bool:
         return True
 
-    def accept_source(self, address: Any) -> None:
+    def accept_source(self, address: Any) -> None:  # noqa: B027 - optional hook, a no-op by default
         """The vehicle's own frames came from ``address``."""
 
 
