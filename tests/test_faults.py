@@ -130,6 +130,7 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
         arena.close()
         watch.close()
         mocap.stop()
+        rig.mocap.stop()  # a test may have started a new emulator in its place
         up.stop()
         world.close()
         link.close()
