@@ -75,7 +75,8 @@ def service() -> Iterator[Callable[..., threading.Event]]:
 
 def latest(sub: Subscription, seen: dict[str, Any]) -> dict[str, Any]:
     """Drain ``sub`` into ``seen`` (key → every decoded payload) and return it."""
-    while (item := sub.get(0.01)) is not None:
+    first = sub.get(0.01)  # wait a little, then take what is there: a live stream never runs dry
+    for item in ([first] if first is not None else []) + sub.channel.drain():
         assert item.error is None, item.error
         seen.setdefault(item.key, []).append(item.payload)
     return seen
