@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal, overload
 
 import typer
 
@@ -62,6 +62,10 @@ def config_path(path: Path | str | None) -> Path:
     return Path(path or os.environ.get("ARENA_CONFIG") or DEFAULT_CONFIG)
 
 
+@overload
+def load_config(path: Path | str | None, required: Literal[True] = True) -> ArenaConfig: ...
+@overload
+def load_config(path: Path | str | None, required: bool) -> ArenaConfig | None: ...
 def load_config(path: Path | str | None, required: bool = True) -> ArenaConfig | None:
     """Load the config or exit with its error on stderr (status 2).  ``required=False`` tolerates absence."""
     p = config_path(path)

@@ -197,7 +197,6 @@ def cli(
     """One vehicle's poses decimated by time to its vision rate (arena/<drone>/vision)."""
     setup_logging(log_level)
     cfg = load_config(config)
-    assert cfg is not None
     try:
         main(cfg, bus_options(mode, connect, listen, zconfig), vehicle=vehicle, rate=rate, host=host)
     except ConfigError as exc:

@@ -183,7 +183,6 @@ def cli(
     """Motive poses (arena/*/mocap) → arena-frame poses with velocities (arena/<drone>/pose)."""
     setup_logging(log_level)
     cfg = load_config(config)
-    assert cfg is not None
     main(cfg, bus_options(mode, connect, listen, zconfig), host=host)
 
 

@@ -87,7 +87,6 @@ def cli(
     """MAVLink gateway of one vehicle: vision out, state/telemetry/events in, commands, setpoints."""
     setup_logging(log_level)
     cfg = load_config(config)
-    assert cfg is not None
     if not 1 <= sysid <= 254:
         raise typer.BadParameter(f"--sysid must be within 1..254, got {sysid}")
     if not state_rate > 0:

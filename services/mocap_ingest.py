@@ -284,7 +284,6 @@ def cli(
     """Receive Motive's rigid bodies and publish each vehicle's on arena/<drone>/mocap."""
     setup_logging(log_level)
     cfg = load_config(config)
-    assert cfg is not None
     main(cfg, bus_options(mode, connect, listen, zconfig), host=host)
 
 

@@ -125,7 +125,6 @@ def cli(
     """Record the bus into MCAP files (Foxglove, PlotJuggler, `arena rec info`)."""
     setup_logging(log_level)
     cfg = load_config(config)
-    assert cfg is not None
     main(cfg, bus_options(mode, connect, listen, zconfig), host=host, directory=directory, name=name)
 
 

@@ -318,7 +318,6 @@ def cli(
     """Motive emulator: stream the simulated vehicles' true poses as NatNet (or replay a capture)."""
     setup_logging(log_level)
     cfg = load_config(config)
-    assert cfg is not None
     try:
         main(
             cfg,

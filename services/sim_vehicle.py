@@ -174,7 +174,6 @@ def cli(
 ) -> None:
     """Simulated PX4 vehicles speaking MAVLink 2, with their true poses on arena/<name>/truth."""
     cfg = load_config(config)
-    assert cfg is not None
     setup_logging(log_level)
     try:
         main(

@@ -56,7 +56,6 @@ def cli(
 ) -> None:
     """The simulated world: simulated PX4 vehicles and a Motive emulator, each its own process."""
     cfg = load_config(config_arg or config)
-    assert cfg is not None
     main(cfg, bus_options(mode, connect, listen, zconfig), host=host, log_level=log_level)
 
 

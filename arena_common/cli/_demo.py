@@ -100,7 +100,6 @@ def demo(
     """Run the simulated arena from CONFIG and fly a formation demo with every vehicle, live status shown."""
     path = config_path(config_file or config)
     cfg = load_config(path)
-    assert cfg is not None
     host = next(iter(cfg.hosts), None)
     if host is None:
         console.print(f"[red]error:[/] {path} names no host to run")

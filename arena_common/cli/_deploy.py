@@ -181,7 +181,6 @@ def systemd_cmd(
 ) -> None:
     """Write systemd units for HOST: one per service, gateway/downsampler per vehicle, arena.target."""
     cfg = load_config(config)
-    assert cfg is not None
     try:
         units = render_systemd(cfg, host, python=python, workdir=workdir, user=user)
         written = write_units(units, prefix)
@@ -234,7 +233,6 @@ def up(
 ) -> None:
     """Run every service the config assigns to this host, each its own process, restarted if it dies."""
     cfg = load_config(config_arg or config)
-    assert cfg is not None
     options = bus_options(mode, connect, listen, zconfig)
     try:
         h = choose_host(cfg, host)
