@@ -22,10 +22,11 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-import numpy.typing as npt
+if TYPE_CHECKING:  # numpy is imported where a batch or a fit needs it: a gateway never loads it
+    import numpy as np
+    import numpy.typing as npt
 
 __all__ = [
     "IDENTITY_QUAT",
@@ -60,7 +61,8 @@ __all__ = [
 
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
-FloatArray = npt.NDArray[np.float64]
+if TYPE_CHECKING:
+    FloatArray = npt.NDArray[np.float64]
 
 IDENTITY_QUAT: Quat = (1.0, 0.0, 0.0, 0.0)
 _SQRT_HALF = math.sqrt(0.5)
@@ -150,6 +152,8 @@ def quat_rotate(q: Sequence[float], v: Sequence[float]) -> Vec3:
 
 def quat_to_matrix(q: Sequence[float]) -> FloatArray:
     """3×3 rotation matrix of unit quaternion ``q`` (columns = body axes expressed in the world)."""
+    import numpy as np
+
     w, x, y, z = quat_normalize(q)
     return np.array(
         [
@@ -167,15 +171,22 @@ def quat_from_matrix(m: npt.ArrayLike) -> Quat:
     Raises :class:`FrameError` unless ``m`` is orthonormal with determinant +1 (to within 1e-6): a
     reflection (determinant −1) has no quaternion.
     """
-    r = np.asarray(m, dtype=np.float64)
-    if r.shape != (3, 3):
-        raise FrameError(f"rotation matrix must be 3×3, got shape {r.shape}")
-    if not np.isfinite(r).all():
+    try:
+        rows = [[float(v) for v in row] for row in m]  # type: ignore[union-attr, arg-type]
+    except (TypeError, ValueError):
+        raise FrameError("rotation matrix must be 3×3 numbers") from None
+    if len(rows) != 3 or any(len(row) != 3 for row in rows):
+        raise FrameError(f"rotation matrix must be 3×3, got rows of {[len(row) for row in rows]}")
+    if not all(math.isfinite(v) for row in rows for v in row):
         raise FrameError("rotation matrix has non-finite entries")
-    if not np.allclose(r.T @ r, np.eye(3), atol=1e-6):
-        raise FrameError("matrix is not orthonormal")
-    if np.linalg.det(r) < 0:
+    for i in range(3):
+        for j in range(3):
+            dot = sum(rows[k][i] * rows[k][j] for k in range(3))
+            if abs(dot - (1.0 if i == j else 0.0)) > 1e-6:
+                raise FrameError("matrix is not orthonormal")
+    if _det3(rows) < 0:
         raise FrameError("matrix is a reflection (determinant −1), not a rotation")
+    r = _Matrix(rows)
     trace = r[0, 0] + r[1, 1] + r[2, 2]
     # Shepperd: pick the largest of w, x, y, z to divide by, for numerical stability.
     if trace > max(r[0, 0], r[1, 1], r[2, 2]):
@@ -191,6 +202,26 @@ def quat_from_matrix(m: npt.ArrayLike) -> Quat:
         s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
         q = ((r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s)
     return quat_canonical(quat_normalize(q))
+
+
+class _Matrix:
+    """Nested rows indexed as ``r[i, j]`` (what the conversion above reads)."""
+
+    __slots__ = ("rows",)
+
+    def __init__(self, rows: list[list[float]]) -> None:
+        self.rows = rows
+
+    def __getitem__(self, ij: tuple[int, int]) -> float:
+        return self.rows[ij[0]][ij[1]]
+
+
+def _det3(r: list[list[float]]) -> float:
+    return (
+        r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
+        - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+        + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0])
+    )
 
 
 def quat_from_euler(roll: float, pitch: float, yaw: float) -> Quat:
@@ -423,6 +454,8 @@ class Calibration:
 
 
 def _points(points: Sequence[Sequence[float]] | npt.ArrayLike, what: str) -> FloatArray:
+    import numpy as np
+
     try:
         a = np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -449,6 +482,8 @@ def solve_calibration(
     Raises :class:`CalibrationError` if there are fewer than 2 points, the lists differ in length, values
     are not finite, or the points do not spread at least ``min_spread_m`` horizontally (yaw undetermined).
     """
+    import numpy as np
+
     m = _points(measured_ned, "measured points")
     k = _points(known_arena, "known arena points")
     if len(m) != len(k):
@@ -487,6 +522,8 @@ def calibration_residuals(
     known_arena: Sequence[Sequence[float]] | npt.ArrayLike,
 ) -> FloatArray:
     """Per-point distance (m) between the calibrated measured points and the known arena points."""
+    import numpy as np
+
     m = _points(measured_ned, "measured points")
     k = _points(known_arena, "known arena points")
     if len(m) != len(k):
@@ -525,32 +562,34 @@ class FrameTransform:
     _t: Vec3 = field(init=False, repr=False, compare=False)
     _m: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
     _m_inv: tuple[tuple[float, ...], ...] = field(init=False, repr=False, compare=False)
-    _a_np: FloatArray = field(init=False, repr=False, compare=False)
-    _t_np: FloatArray = field(init=False, repr=False, compare=False)
-    _m_np: FloatArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         up = UpAxis.parse(self.up_axis)
         object.__setattr__(self, "up_axis", up)
         if not isinstance(self.calibration, Calibration):
             raise FrameError(f"calibration must be a Calibration, got {type(self.calibration).__name__}")
-        world = np.array(_WORLD_MATRIX[up], dtype=np.float64)
-        body = np.array(_BODY_MATRIX[up], dtype=np.float64)
+        world = _WORLD_MATRIX[up]
         yaw = self.calibration.yaw_rad
-        rz = np.array(
-            [[math.cos(yaw), -math.sin(yaw), 0.0], [math.sin(yaw), math.cos(yaw), 0.0], [0.0, 0.0, 1.0]]
-        )
-        a = rz @ world
+        c, s_ = math.cos(yaw), math.sin(yaw)
+        rz = ((c, -s_, 0.0), (s_, c, 0.0), (0.0, 0.0, 1.0))
+        a = tuple(tuple(sum(rz[i][k] * world[k][j] for k in range(3)) for j in range(3)) for i in range(3))
         left = quat_multiply(quat_from_yaw(yaw), quat_from_matrix(world))
-        right = quat_conjugate(quat_from_matrix(body))
+        right = quat_conjugate(quat_from_matrix(_BODY_MATRIX[up]))
         m = _quat_linear_map(left, right)
         object.__setattr__(self, "_a", tuple(tuple(float(v) for v in row) for row in a))
         object.__setattr__(self, "_t", self.calibration.offset_ned)
         object.__setattr__(self, "_m", m)
         object.__setattr__(self, "_m_inv", tuple(tuple(m[j][i] for j in range(4)) for i in range(4)))
-        object.__setattr__(self, "_a_np", a)
-        object.__setattr__(self, "_t_np", np.array(self.calibration.offset_ned, dtype=np.float64))
-        object.__setattr__(self, "_m_np", np.array(m, dtype=np.float64))
+
+    def _arrays(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``A``, ``t`` and ``M`` as numpy arrays, for the batch methods (built on first use)."""
+        cached: tuple[FloatArray, FloatArray, FloatArray] | None = self.__dict__.get("_np")
+        if cached is None:
+            import numpy as np
+
+            cached = (np.array(self._a), np.array(self._t), np.array(self._m))
+            object.__setattr__(self, "_np", cached)
+        return cached
 
     def position(self, p: Sequence[float]) -> Vec3:
         """Motive position → arena NED (m)."""
@@ -576,8 +615,9 @@ class FrameTransform:
     def poses(self, p: npt.ArrayLike, q: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Vectorised :meth:`pose`: ``P[N, 3]``, ``Q[N, 4]`` → arena ``(P[N, 3], Q[N, 4])``."""
         pa, qa = _check_batch(p, q)
-        p_out = pa @ self._a_np.T + self._t_np
-        q_out = _normalise_batch(qa @ self._m_np.T)
+        a, t, m = self._arrays()
+        p_out = pa @ a.T + t
+        q_out = _normalise_batch(qa @ m.T)
         return p_out, q_out
 
     def inverse_position(self, p: Sequence[float]) -> Vec3:
@@ -600,8 +640,9 @@ class FrameTransform:
     def inverse_poses(self, p: npt.ArrayLike, q: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Vectorised :meth:`inverse_pose`."""
         pa, qa = _check_batch(p, q)
-        p_out = (pa - self._t_np) @ self._a_np
-        q_out = _normalise_batch(qa @ self._m_np)
+        a, t, m = self._arrays()
+        p_out = (pa - t) @ a
+        q_out = _normalise_batch(qa @ m)
         return p_out, q_out
 
 
@@ -622,6 +663,8 @@ def _apply_quat_map(m: tuple[tuple[float, ...], ...], q: Sequence[float]) -> Qua
 
 
 def _check_batch(p: npt.ArrayLike, q: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+    import numpy as np
+
     pa = np.asarray(p, dtype=np.float64)
     qa = np.asarray(q, dtype=np.float64)
     if pa.ndim != 2 or pa.shape[1] != 3:
@@ -642,6 +685,8 @@ def _check_batch(p: npt.ArrayLike, q: npt.ArrayLike) -> tuple[FloatArray, FloatA
 
 
 def _normalise_batch(q: FloatArray) -> FloatArray:
+    import numpy as np
+
     scale = 1.0 / np.sqrt((q * q).sum(axis=1))
     scale = np.where(q[:, 0] < 0.0, -scale, scale)
     return np.asarray(q * scale[:, None], dtype=np.float64)

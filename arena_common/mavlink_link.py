@@ -42,7 +42,6 @@ from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from pymavlink import mavutil
 from pymavlink.dialects.v20 import all as mavlink2  # common + development + the rest: every CRC_EXTRA
 
 from arena_common.errors import ArenaError
@@ -357,6 +356,8 @@ class _Pymavlink(_Transport):
         head, sep, tail = url.rpartition(":")
         if sep and tail.isdigit() and (head.startswith("/dev/") or head.upper().startswith("COM")):
             device, baud = head, int(tail)
+        from pymavlink import mavutil  # only serial links need it (and it pulls in numpy)
+
         self.conn: Any = mavutil.mavlink_connection(device, baud=baud, autoreconnect=False)
 
     def fileno(self) -> int | None:

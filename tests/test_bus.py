@@ -21,6 +21,49 @@ def test_ring_keeps_latest_and_fifo_drops_newest() -> None:
     assert fifo.get(5.0) is None  # closed and empty: returns at once
 
 
+def test_channel_hands_every_item_to_parked_readers_and_close_wakes_them() -> None:
+    ch: Channel[int] = Channel(100_000, ring=False)
+    got: list[int] = []
+    lock = threading.Lock()
+
+    def reader() -> None:
+        while True:
+            item = ch.get(5.0)
+            if item is None:
+                return
+            with lock:
+                got.append(item)
+
+    readers = [threading.Thread(target=reader) for _ in range(3)]
+    for t in readers:
+        t.start()
+
+    # Producers race the readers parking and unparking: nothing may be lost or stranded.
+    def produce(k: int) -> None:
+        for i in range(5_000):
+            ch.put(k * 10_000 + i)
+
+    producers = [threading.Thread(target=produce, args=(k,)) for k in range(2)]
+    for t in producers:
+        t.start()
+    for t in producers:
+        t.join(5.0)
+    wait_for(lambda: len(got) == 10_000, 5.0, "every item read")
+    ch.close()
+    for t in readers:
+        t.join(2.0)
+        assert not t.is_alive(), "close() left a reader parked"
+    assert sorted(got) == sorted(k * 10_000 + i for k in range(2) for i in range(5_000))
+    assert ch.get(0.0) is None and ch.dropped == 0
+
+
+def test_channel_get_times_out_empty() -> None:
+    ch: Channel[int] = Channel(1)
+    assert ch.get(0.05) is None
+    ch.put(1)
+    assert ch.get(0.05) == 1
+
+
 def test_typed_publish_subscribe_and_bad_payload(bus_factory: Callable[[], Bus]) -> None:
     a, b = bus_factory(), bus_factory()
     sub = b.subscribe("arena/*/pose", capacity=100, ring=False)
