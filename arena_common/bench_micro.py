@@ -201,7 +201,7 @@ def _stages(scale: float) -> dict[str, float]:
     """The Python work each service does per pose, outside Zenoh (decode, process, encode)."""
     from arena_common.frames import FrameTransform
     from arena_common.mavlink_link import mavlink2
-    from services.downsampler import VisionFilter
+    from arena_common.vision import VisionFilter
     from services.frame_transform import PoseConverter
     from services.mocap_ingest import encode_pose
 

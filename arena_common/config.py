@@ -22,6 +22,7 @@ VEHICLE_SERVICES = ("downsampler", "gateway")
 UP_AXES = ("y", "z", "enu")
 MOCAP_SOURCES = ("natnet", "motioncapture", "csv")
 ZENOH_MODES = ("peer", "client", "router")
+DECIMATE_IN = ("downsampler", "transform")
 
 
 @dataclass(frozen=True, slots=True)
@@ -167,6 +168,19 @@ class SecuritySpec:
 
 
 @dataclass(frozen=True, slots=True)
+class PipelineSpec:
+    """Where a vehicle's full-rate poses are decimated into its vision stream.
+
+    ``downsampler``: one downsampler process per vehicle (``hosts.<h>.vehicle_services``), which can run
+    on the vehicle's companion computer.  ``transform``: the frame transform decimates every configured
+    vehicle in-process — one process and one hop less per vehicle, and only the vision rate leaves the
+    ground computer.
+    """
+
+    decimate: str = "downsampler"
+
+
+@dataclass(frozen=True, slots=True)
 class ArenaConfig:
     """A whole arena, as one TOML file describes it."""
 
@@ -180,6 +194,7 @@ class ArenaConfig:
     sim: SimSpec
     recorder: RecorderSpec
     security: SecuritySpec = field(default_factory=SecuritySpec)
+    pipeline: PipelineSpec = field(default_factory=PipelineSpec)
 
     def vehicle(self, name: str) -> VehicleSpec:
         """A vehicle by name; :class:`ConfigError` listing the known names if absent."""
@@ -379,6 +394,16 @@ def parse(data: Mapping[str, Any], path: str = "<config>") -> ArenaConfig:
     )
     z.done()
 
+    pl = root.table("pipeline")
+    pipeline = PipelineSpec(decimate=pl.string("decimate", "downsampler", DECIMATE_IN))
+    pl.done()
+    # With the transform decimating, no host runs per-vehicle downsamplers.
+    default_vehicle_services = (
+        VEHICLE_SERVICES
+        if pipeline.decimate == "downsampler"
+        else tuple(s for s in VEHICLE_SERVICES if s != "downsampler")
+    )
+
     vs = root.table("vehicles")
     vehicles: dict[str, VehicleSpec] = {}
     ids: dict[int, str] = {}
@@ -400,9 +425,15 @@ def parse(data: Mapping[str, Any], path: str = "<config>") -> ArenaConfig:
             name=hname,
             services=h.strings("services", (), SERVICES),
             vehicles=h.strings("vehicles", ()),
-            vehicle_services=h.strings("vehicle_services", VEHICLE_SERVICES, VEHICLE_SERVICES),
+            vehicle_services=h.strings("vehicle_services", default_vehicle_services, VEHICLE_SERVICES),
             address=h.string("address", ""),
         )
+        if pipeline.decimate == "transform" and "downsampler" in host.vehicle_services:
+            raise h.fail(
+                "vehicle_services",
+                'no "downsampler" while pipeline.decimate = "transform" (the transform decimates)',
+                list(host.vehicle_services),
+            )
         for vname in host.vehicles:
             if vname not in vehicles:
                 raise h.fail(
@@ -457,7 +488,9 @@ def parse(data: Mapping[str, Any], path: str = "<config>") -> ArenaConfig:
             )
     sc.done()
     root.done()
-    return ArenaConfig(path, arena, calibration, mocap, zenoh, hosts, vehicles, sim, recorder, security)
+    return ArenaConfig(
+        path, arena, calibration, mocap, zenoh, hosts, vehicles, sim, recorder, security, pipeline
+    )
 
 
 def load(path: str | Path) -> ArenaConfig:

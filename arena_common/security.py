@@ -7,7 +7,8 @@ between two computers crosses the router), so the router enforces:
   ``user:password`` dictionary, each host its own password file), and/or presents a TLS certificate
   whose common name is its host name (mutual TLS);
 * **ownership of keys** — only the host running a vehicle's gateway may publish its ``state``,
-  ``telemetry/**`` and ``events`` or serve its ``cmd``; only its downsampler's host its ``vision``; only
+  ``telemetry/**`` and ``events`` or serve its ``cmd``; only its downsampler's host its ``vision`` (the
+  transform's host when the transform decimates); only
   the mocap/transform/sim hosts ``mocap``/``pose``/``truth``; a host's presence and stats live under
   its own name;
 * **who commands** — only ``command_hosts`` may query ``arena/*/cmd`` and ``arena/sys/rec/*`` or put
@@ -63,6 +64,8 @@ def owners(cfg: ArenaConfig) -> dict[str, set[str]]:
                 own(f"arena/{v}/mocap", h.name)
             if "transform" in h.services:
                 own(f"arena/{v}/pose", h.name)
+                if cfg.pipeline.decimate == "transform":
+                    own(f"arena/{v}/vision", h.name)
             if "sim" in h.services:
                 own(f"arena/{v}/truth", h.name)
         for v in h.vehicles:

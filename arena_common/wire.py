@@ -66,6 +66,8 @@ class Payload:
     VERSION: ClassVar[int] = 1
     DOC: ClassVar[str] = ""
     _specs: ClassVar[tuple[tuple[str, Spec], ...]]
+    _encode_plan: ClassVar[tuple[tuple[str, str, bool], ...]]
+    _decode_plan: ClassVar[tuple[tuple[str, Spec, Callable[[Any], Any]], ...]]
 
     @classmethod
     def encoding(cls) -> str:
@@ -85,8 +87,14 @@ class Payload:
         return out
 
     def encode(self) -> bytes:
-        """msgpack bytes of :meth:`to_dict`."""
-        return msgpack.packb(self.to_dict(), use_bin_type=True)
+        """msgpack bytes of :meth:`to_dict` (msgpack packs the tuples as arrays itself)."""
+        out: dict[str, Any] = {}
+        for name, wire_name, optional in self._encode_plan:
+            value = getattr(self, name)
+            if value is None and optional:
+                continue
+            out[wire_name] = value
+        return msgpack.packb(out, use_bin_type=True)
 
     @classmethod
     def from_dict(cls: type[T], data: Any, key: str = "") -> T:
@@ -94,17 +102,19 @@ class Payload:
         if not isinstance(data, Mapping):
             raise PayloadError(f"expected a map, got {type(data).__name__}", key=key, type_name=cls.SCHEMA)
         kwargs: dict[str, Any] = {}
-        known = set()
-        for name, spec in cls._specs:
-            known.add(spec.wire)
-            if spec.wire not in data:
+        for name, spec, fast in cls._decode_plan:
+            value = data.get(spec.wire, _ABSENT)
+            if value is _ABSENT:
                 if spec.optional:
                     continue
                 default = _default_of(cls, name)
                 if default is dataclasses.MISSING:
                     raise PayloadError("missing field", key=key, type_name=cls.SCHEMA, field=spec.wire)
                 continue
-            kwargs[name] = _check(spec, data[spec.wire], key, cls.SCHEMA)
+            # The fast check accepts only plain well-formed values; anything else takes the full check,
+            # which converts or names what is wrong.
+            checked = fast(value)
+            kwargs[name] = _check(spec, value, key, cls.SCHEMA) if checked is _ABSENT else checked
         try:
             obj = cls(**kwargs)
         except (TypeError, ValueError) as exc:
@@ -211,6 +221,44 @@ def _check(spec: Spec, v: Any, key: str, schema: str) -> Any:
     raise AssertionError(kind)
 
 
+_ABSENT: Any = object()  # a field not in the map; also what a fast check returns to ask for the full one
+
+
+def _fast_check(spec: Spec) -> Callable[[Any], Any]:
+    """A check that returns a plain, valid value as it will be stored, else ``_ABSENT``.
+
+    It accepts a subset of what :func:`_check` accepts and returns the same value for it, so the hot
+    path (poses at the mocap rate) skips the general dispatch.  ``v - v == 0.0`` is false for NaN and ±inf.
+    """
+    lo = -math.inf if spec.lo is None else spec.lo
+    hi = math.inf if spec.hi is None else spec.hi
+    if spec.kind == "float":
+        return lambda v: v if type(v) is float and v - v == 0.0 and lo <= v <= hi else _ABSENT
+    if spec.kind == "int":
+        ilo, ihi = max(lo, -_MAX_INT), min(hi, _MAX_INT)
+        return lambda v: v if type(v) is int and ilo <= v <= ihi else _ABSENT
+    if spec.kind == "bool":
+        return lambda v: v if type(v) is bool else _ABSENT
+    if spec.kind == "str" and not spec.choices:
+        return lambda v: v if type(v) is str and len(v) <= 4096 else _ABSENT
+    if spec.kind == "str":
+        choices = frozenset(spec.choices)
+        return lambda v: v if type(v) is str and v in choices else _ABSENT
+    if spec.kind in ("vec3", "quat") and spec.lo is None and spec.hi is None:
+        n = 3 if spec.kind == "vec3" else 4
+
+        def vector(v: Any) -> Any:
+            if type(v) is not list or len(v) != n:
+                return _ABSENT
+            for x in v:
+                if type(x) is not float or x - x != 0.0:
+                    return _ABSENT
+            return tuple(v)
+
+        return vector
+    return lambda v: _ABSENT
+
+
 def _quat_problem(q: Quat | None, wire: str) -> tuple[str, str] | None:
     if q is None:
         return None
@@ -228,6 +276,8 @@ def payload(cls: type[T]) -> type[T]:
     """Class decorator: freeze as a slotted dataclass, collect field specs, register the schema."""
     dc = dataclass(frozen=True, slots=True)(cls)
     dc._specs = tuple((f.name, f.metadata["wire"]) for f in dataclasses.fields(dc))  # type: ignore[arg-type]
+    dc._encode_plan = tuple((name, spec.wire, spec.optional) for name, spec in dc._specs)
+    dc._decode_plan = tuple((name, spec, _fast_check(spec)) for name, spec in dc._specs)
     REGISTRY[dc.SCHEMA] = dc
     return dc
 
@@ -542,12 +592,26 @@ def type_for_encoding(encoding: str) -> type[Payload] | None:
     return cls
 
 
+_DECODERS: dict[tuple[str, str], type[Payload]] = {}  # (key, encoding) → type, for pairs seen valid
+_DECODERS_MAX = 4096
+
+
 def decode_any(key: str, raw: bytes, encoding: str = "") -> Payload:
     """Decode a payload as the type its key carries.
 
     An encoding that names a schema must name that same type (a ``State`` sent on a vision key is
     refused, never handed on as a State); keys outside the table are decoded by their encoding.
     """
+    cls = _DECODERS.get((key, encoding))
+    if cls is None:
+        cls = _decoder_for(key, encoding)
+        if len(_DECODERS) >= _DECODERS_MAX:  # bounded: a flood of odd keys only costs the slow path
+            _DECODERS.clear()
+        _DECODERS[(key, encoding)] = cls
+    return cls.decode(raw, key)
+
+
+def _decoder_for(key: str, encoding: str) -> type[Payload]:
     by_encoding = type_for_encoding(encoding) if encoding else None
     try:
         by_key: type[Payload] | None = type_for_key(key)
@@ -565,7 +629,7 @@ def decode_any(key: str, raw: bytes, encoding: str = "") -> Payload:
         )
     cls = by_key or by_encoding
     assert cls is not None
-    return cls.decode(raw, key)
+    return cls
 
 
 _JSON_KIND: dict[str, Callable[[Spec], dict[str, Any]]] = {

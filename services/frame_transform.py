@@ -10,6 +10,10 @@ Bodies Motive lost (``ok`` false) are passed on with ``ok=False`` so that consum
 restart the vehicle's velocity estimate and are never made valid here. Undecodable samples are counted
 under ``rejected`` in the service's stats and skipped.
 
+With ``[pipeline] decimate = "transform"`` it also runs each configured vehicle's
+:class:`~arena_common.vision.VisionFilter` (what the downsampler process does otherwise) and publishes
+``arena/<drone>/vision`` at the vehicle's ``vision_rate``: one process and one hop less per vehicle.
+
 Samples arrive one per key, so the per-pose path uses plain float math (several times cheaper than numpy
 for a single pose); the transform itself is a small share of the per-pose cost, which is dominated by
 msgpack decoding and payload validation.
@@ -39,7 +43,8 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.service import running, setup_logging
+from arena_common.service import Service, running, setup_logging
+from arena_common.vision import VisionFilter, account
 
 SERVICE = "transform"
 SUBSCRIPTION = "arena/*/mocap"
@@ -117,6 +122,28 @@ class PoseConverter:
         return len(self._velocity)
 
 
+class Decimators:
+    """The vision filters the transform runs when it decimates (one per configured vehicle)."""
+
+    def __init__(self, svc: Service, cfg: ArenaConfig) -> None:
+        self.svc = svc
+        self.filters = {name: VisionFilter(v.vision_rate) for name, v in cfg.vehicles.items()}
+        self.publishers = {
+            name: svc.bus.stream_publisher(keys.vision(name), wire.Pose) for name in self.filters
+        }
+
+    def offer(self, drone: str, pose: wire.Pose) -> None:
+        """Publish ``pose`` as ``drone``'s vision if its filter passes it (unknown bodies have none)."""
+        filt = self.filters.get(drone)
+        if filt is None:
+            return
+        d = filt.process(pose, pose.tp)
+        account(self.svc, drone, pose, d, filt.rc)
+        if d.vision is not None:
+            self.publishers[drone].put(d.vision)
+            self.svc.stats.count("vision")
+
+
 def main(
     cfg: ArenaConfig,
     options: BusOptions | None = None,
@@ -133,6 +160,9 @@ def main(
             cfg.calibration.yaw_deg,
             cfg.calibration.offset,
         )
+        decimators = Decimators(svc, cfg) if cfg.pipeline.decimate == "transform" else None
+        if decimators is not None:
+            svc.log.info("decimating %d vehicles into vision in-process", len(decimators.filters))
         sub = svc.bus.subscribe(SUBSCRIPTION, capacity=QUEUE_CAPACITY, ring=False)
         publishers: dict[str, Publisher[wire.Pose]] = {}
         dropped = 0
@@ -164,6 +194,8 @@ def main(
             except FrameError as exc:
                 svc.reject("bad_pose", f"{item.key}: {exc}")
                 continue
+            if decimators is not None:
+                decimators.offer(drone, pose)  # vision first: it is the latency-critical output
             pub.put(pose)
             svc.stats.count("out")
             if not pose.ok:

@@ -19,8 +19,8 @@ from arena_common import keys, wire
 from arena_common.bus import Bus, Received
 from arena_common.cli import app
 from arena_common.config import ArenaConfig
+from arena_common.vision import VELOCITY_SETTLE_S, Outcome, VisionFilter
 from services import downsampler
-from services.downsampler import Outcome, VisionFilter
 from tests.conftest import REPO, wait_for, write_config
 from tests.test_frame_transform import service_thread
 
@@ -144,7 +144,7 @@ def test_jittery_180_hz_to_50_hz_through_the_service(
     after = [v for v in vis if v.t >= reacquired]
     assert {v.rc for v in before} == {0} and {v.rc for v in after} == {1} and len(after) >= 8
     assert all(v.p[0] - SPEED * (v.t - T0) * 1e-9 == pytest.approx(2.0) for v in after)
-    settle = int(downsampler.VELOCITY_SETTLE_S * 1e9)
+    settle = int(VELOCITY_SETTLE_S * 1e9)
     for v in vis:
         unsettled = 0 <= v.t - reacquired < settle or 0 <= v.t - ts[outlier] < settle
         assert v.vok is not unsettled, (v.fn, v.vok)

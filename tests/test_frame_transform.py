@@ -239,3 +239,55 @@ def test_runs_as_a_process(tmp_path: Path, router_endpoint: str, bus_factory: Ca
     # Y-up (1, 2, 3) → NED (1, 3, −2) → −90° about Down: (3, −1, −2) → + (1, 0, 0)
     assert pose.p == pytest.approx((4.0, -1.0, -2.0), abs=1e-9)
     assert quat_angle(pose.q, quat_from_euler(0.0, 0.0, math.radians(-90.0))) < 1e-9
+
+
+DECIMATE_IN_TRANSFORM = '[pipeline]\ndecimate = "transform"'
+
+
+def test_decimates_into_vision_when_configured(
+    arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
+) -> None:
+    """``decimate = "transform"``: 180 Hz in, the vehicle's 50 Hz vision out, by time; nothing for others."""
+    cfg = arena_config(extra=DECIMATE_IN_TRANSFORM)
+    assert cfg.vehicles["d1"].vision_rate == 50.0
+    bus = bus_factory()
+    link = Link(bus)
+    vision = bus.subscribe(keys.vision("d1"), capacity=10_000, ring=False)
+    stranger = Link(bus, "zz")  # a body no vehicle is configured for: pose yes, vision no
+    stranger_vision = bus.subscribe(keys.vision("zz"), capacity=100, ring=False)
+    with service_thread(frame_transform.main, cfg, host="test"):
+        link.warm_up()
+        vision.channel.drain()  # the warm-up samples are untracked: none became vision anyway
+        samples = [mocap(1000 + i, (0.001 * i, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)) for i in range(180)]
+        poses = link.exchange(samples)
+        stranger.warm_up()
+        stranger.exchange([mocap(5000, (1.0, 2.0, 3.0), (1.0, 0.0, 0.0, 0.0))])
+        wait_for(lambda: len(vision.channel) >= 49, timeout=10, what="a second of vision")
+    out = [i.payload for i in vision.channel.drain()]
+    assert all(isinstance(v, wire.Pose) and v.ok for v in out)
+    assert 49 <= len(out) <= 51, len(out)  # one second of 180 Hz input at 50 Hz
+    by_fn = {p.fn: p for p in poses}
+    for v in out:
+        assert v.p == by_fn[v.fn].p and v.t == by_fn[v.fn].t  # a pose the transform made, not a blend
+    gaps = [(b.t - a.t) / 1e6 for a, b in zip(out, out[1:], strict=False)]
+    assert min(gaps) > 16.0 and max(gaps) < 24.0, gaps  # 20 ms slots, picked by measurement time
+    assert len(stranger_vision.channel) == 0
+
+
+def test_decimating_transform_replaces_the_downsampler_processes(
+    tmp_path: Path, router_endpoint: str
+) -> None:
+    from arena_common.config import load
+    from arena_common.errors import ConfigError
+    from arena_common.supervisor import plan
+
+    cfg = load(write_config(tmp_path, router_endpoint, 2, DECIMATE_IN_TRANSFORM))
+    assert cfg.hosts["test"].vehicle_services == ("gateway",)
+    names = [p.name for p in plan(cfg, "test")]
+    assert "gateway.d1" in names and not any(n.startswith("downsampler") for n in names)
+    bad = write_config(tmp_path, router_endpoint, 1, DECIMATE_IN_TRANSFORM)
+    bad.write_text(
+        bad.read_text().replace("[hosts.test]", '[hosts.test]\nvehicle_services = ["downsampler", "gateway"]')
+    )
+    with pytest.raises(ConfigError, match="vehicle_services.*the transform decimates"):
+        load(bad)

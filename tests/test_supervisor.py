@@ -242,7 +242,8 @@ def test_restart_after_kill_with_prefixed_logs(worker: Path, running_supervisor:
     assert out.grep(
         rf"^\[arena\] b\.d1 \(pid {pids['b.d1']}\) killed by SIGKILL after .*restarting in 0\.5 s"
     )
-    assert out.grep(r"^\[arena\] restarted b\.d1 \(pid \d+, restart 1\)")
+    # The new pid is known a moment before the supervisor says so.
+    wait_for(lambda: out.grep(r"^\[arena\] restarted b\.d1 \(pid \d+, restart 1\)"), 5, what="restart line")
     assert sup.pids()["a"] == pids["a"]  # the others are left alone
     assert sup.restart_count == 1
 
