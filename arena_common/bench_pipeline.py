@@ -55,6 +55,7 @@ from arena_common.config import load as load_config
 from arena_common.frames import FrameTransform, quat_from_yaw
 
 __all__ = [
+    "CHAINS",
     "ODOMETRY_ID",
     "PointResult",
     "RunSettings",
@@ -69,6 +70,8 @@ __all__ = [
 
 ODOMETRY_ID = 331
 VISION_RATE = 400.0  # Hz: above the mocap rate, so the decimator passes every pose
+# The arena's chains, by where the vision is decimated ([pipeline] decimate).
+CHAINS = {"downsampler": "arena", "transform": "arena-td"}
 TRUTH_RATE = 60.0  # Hz per vehicle
 NATNET_VERSION = "3.1"
 HOST = "bench"
@@ -125,8 +128,18 @@ def _group() -> str:
     return f"239.255.{random.randint(1, 254)}.{random.randint(1, 254)}"
 
 
-def write_config(directory: Path, n_vehicles: int, rate: float, harness_ports: Sequence[int]) -> Path:
-    """An arena config with private ports: multicast NatNet, no noise, gateways sending to the harness."""
+def write_config(
+    directory: Path,
+    n_vehicles: int,
+    rate: float,
+    harness_ports: Sequence[int],
+    *,
+    decimate: str = "downsampler",
+) -> Path:
+    """An arena config with private ports: multicast NatNet, no noise, gateways sending to the harness.
+
+    ``decimate`` is the config's ``[pipeline] decimate``.
+    """
     directory.mkdir(parents=True, exist_ok=True)
     router = free_port(socket_kind_tcp())
     lines = [
@@ -152,6 +165,8 @@ def write_config(directory: Path, n_vehicles: int, rate: float, harness_ports: S
         f'natnet_version = "{NATNET_VERSION}"',
         "noise_m = 0.0",
         "dropout = 0.0",
+        "[pipeline]",
+        f'decimate = "{decimate}"',
     ]
     for i in range(n_vehicles):
         lines += [
@@ -435,7 +450,8 @@ def hop_breakdown(
 
     Stages: ``ingest`` frame arrival → MocapPose stamped; ``transform`` → Pose stamped; ``downsampler`` →
     vision stamped; ``gateway`` → ODOMETRY arrival.  Each includes the hop into it and the previous
-    stage's encoding and publication.
+    stage's encoding and publication.  When the transform decimates, it stamps the vision pose before
+    the full-rate one: ``transform`` then ends at the vision stamp and there is no ``downsampler`` stage.
     """
     stages: dict[str, list[int]] = {"ingest": [], "transform": [], "downsampler": [], "gateway": []}
     mocap, pose, vision = hops.get("mocap", {}), hops.get("pose", {}), hops.get("vision", {})
@@ -444,10 +460,13 @@ def hop_breakdown(
         if a is None or b is None or c is None:
             continue
         stages["ingest"].append(a - t_frame)
-        stages["transform"].append(b - a)
-        stages["downsampler"].append(c - b)
+        if c <= b:  # the transform decimated: vision was stamped first
+            stages["transform"].append(c - a)
+        else:
+            stages["transform"].append(b - a)
+            stages["downsampler"].append(c - b)
         stages["gateway"].append(t_odo - c)
-    return {name: latency_stats(v).as_dict() for name, v in stages.items()}
+    return {name: latency_stats(v).as_dict() for name, v in stages.items() if v}
 
 
 class HopWatcher:
@@ -680,21 +699,24 @@ def run_arena(
     *,
     realistic_vision: float | None = None,
     on_point: Callable[[PointResult], None] | None = None,
+    decimate: str = "downsampler",
 ) -> list[PointResult]:
     """The real pipeline for ``n`` vehicles at each rate (processes started once, the emulator per rate).
 
     Every pose goes to the autopilot (vision rate :data:`VISION_RATE`).  With ``realistic_vision``, the
-    downsamplers are then restarted at that vision rate and one more point runs at the first rate (chain
+    decimators are then restarted at that vision rate and one more point runs at the first rate (chain
     ``arena-v<rate>``): the pipeline's CPU as deployed, its latencies and losses against what the
-    decimator passes by design.
+    decimator passes by design.  ``decimate`` is the config's ``[pipeline] decimate``: ``downsampler``
+    (one process per vehicle; chain ``arena``) or ``transform`` (chain ``arena-td``).
     """
     from arena_common.natnet_server import TICK_FREQUENCY
     from services.frame_transform import frame_transform
     from services.sim_mocap import rigid_bodies
 
-    workdir = settings.logs / f"arena-{n}"
+    chain_name = CHAINS[decimate]
+    workdir = settings.logs / f"{chain_name}-{n}"
     socks, ports = _vehicle_sockets(n)
-    path = write_config(workdir, n, rates[0], ports)
+    path = write_config(workdir, n, rates[0], ports, decimate=decimate)
     cfg = load_config(path)
     socks["frames"] = stamped_socket(cfg.mocap.data_port, group=cfg.mocap.group)
     names = list(cfg.vehicles)
@@ -710,7 +732,19 @@ def run_arena(
     watcher: StatsWatcher | None = None
     hop_watcher: HopWatcher | None = None
 
-    def downsamplers(vision_rate: float) -> None:
+    def decimators(vision_rate: float) -> None:
+        if decimate == "transform":
+            conf = path
+            if vision_rate != VISION_RATE:  # the same arena (ports and all), another vision rate
+                conf = path.with_name(f"{path.stem}-v{vision_rate:g}.toml")
+                conf.write_text(
+                    path.read_text().replace(f"vision_rate = {VISION_RATE}", f"vision_rate = {vision_rate}")
+                )
+            args = ["-c", str(conf), *common[2:]]
+            procs.spawn(
+                "transform", "transform", python_module("services.frame_transform", *args), settings.repo
+            )
+            return
         for v in names:
             procs.spawn(
                 f"downsampler.{v}",
@@ -720,7 +754,8 @@ def run_arena(
             )
 
     def all_up() -> None:
-        expected_alive = 2 + 2 * n  # router, transform, downsamplers, gateways
+        # router, transform, gateways, downsamplers
+        expected_alive = 2 + (2 * n if decimate == "downsampler" else n)
         assert bus is not None
         the_bus = bus
         wait_until(
@@ -813,10 +848,11 @@ def run_arena(
         watcher = StatsWatcher(bus)
         if settings.hops:
             hop_watcher = HopWatcher(bus, names[0])
-        procs.spawn(
-            "transform", "transform", python_module("services.frame_transform", *common), settings.repo
-        )
-        downsamplers(VISION_RATE)
+        decimators(VISION_RATE)
+        if decimate == "downsampler":
+            procs.spawn(
+                "transform", "transform", python_module("services.frame_transform", *common), settings.repo
+            )
         for v in names:
             procs.spawn(
                 f"gateway.{v}",
@@ -832,14 +868,15 @@ def run_arena(
             time.sleep(settings.idle)
             idle = procs.usage()
         for rate in rates:
-            measure(rate, "arena", VISION_RATE, idle)
+            measure(rate, chain_name, VISION_RATE, idle)
             idle = {}
         if realistic_vision is not None:
-            for c in [c for c in procs.children if c.role == "downsampler"]:
+            role = "downsampler" if decimate == "downsampler" else "transform"
+            for c in [c for c in procs.children if c.role == role]:
                 procs.stop(c)
-            downsamplers(realistic_vision)
+            decimators(realistic_vision)
             all_up()
-            measure(rates[0], f"arena-v{realistic_vision:g}", realistic_vision, {})
+            measure(rates[0], f"{chain_name}-v{realistic_vision:g}", realistic_vision, {})
     finally:
         if hop_watcher is not None:
             hop_watcher.close()

@@ -106,17 +106,19 @@ class VisionFilter:
         self.rc = (self.rc + 1) % 256
 
 
-def account(svc: Service, vehicle: str, pose: wire.Pose, d: Decision, rc: int) -> None:
+def account(svc: Service, vehicle: str, pose: wire.Pose, d: Decision, rc: int, prefix: str = "") -> None:
     """Count (and log resets and refusals of) one :meth:`VisionFilter.process` decision, sent or not.
 
-    The sent ones are counted as ``out`` by the caller, which publishes them.
+    Counters and rejection reasons are ``prefix`` + ``resets``/``skipped``/``invalid``/``stale``/
+    ``outlier_<why>`` (the transform uses ``vision_`` to keep them apart from its own).  The sent ones
+    are counted by the caller, which publishes them.
     """
     if d.reset:
-        svc.stats.count("resets")
+        svc.stats.count(f"{prefix}resets")
         svc.log.info("%s: new track at t=%d: reset counter %d", vehicle, pose.t, rc)
     if d.outcome is Outcome.OUTLIER:
         # A timestamp not after the last accepted one is stale (or a duplicate), not an outlier.
         reason = "stale" if d.reason == "stale" else f"outlier_{d.reason}"
-        svc.reject(reason, f"{vehicle}: pose at t={pose.t} dropped ({d.reason})")
+        svc.reject(f"{prefix}{reason}", f"{vehicle}: pose at t={pose.t} dropped ({d.reason})")
     elif d.outcome is not Outcome.SENT:
-        svc.stats.count(d.outcome.value)
+        svc.stats.count(f"{prefix}{d.outcome.value}")

@@ -138,7 +138,7 @@ class Decimators:
         if filt is None:
             return
         d = filt.process(pose, pose.tp)
-        account(self.svc, drone, pose, d, filt.rc)
+        account(self.svc, drone, pose, d, filt.rc, prefix="vision_")
         if d.vision is not None:
             self.publishers[drone].put(d.vision)
             self.svc.stats.count("vision")

@@ -77,6 +77,7 @@ def write_arena_config(
     endpoint: str | None = None,
     multicast: bool = True,
     name: str = "arena.toml",
+    decimate: str = "downsampler",
 ) -> Path:
     """Write a one-host (``test``) config with free ports; return its path.
 
@@ -84,8 +85,11 @@ def write_arena_config(
     :class:`LossyLink`) instead of the mirror of its gateway's, ``gateway_ports`` to the UDP port its
     gateway listens on (else a free one); ``recorder`` is the body of a ``[recorder]`` table;
     ``endpoint`` is the router's (else a free port); ``multicast`` false streams NatNet by unicast (a
-    fresh network namespace has no multicast route).
+    fresh network namespace has no multicast route); ``decimate`` is ``[pipeline] decimate`` (with
+    ``transform``, no host runs downsamplers).
     """
+    if decimate == "transform":
+        vehicle_services = [s for s in vehicle_services if s != "downsampler"]
     endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
     lines = [
         "[arena]",
@@ -123,6 +127,7 @@ def write_arena_config(
             f"sim = {{ {sim} }}",
         ]
     lines += ["[sim]", f"speed = {speed}", f"mocap_rate = {mocap_rate}", f"noise_m = {noise_m}"]
+    lines += ["[pipeline]", f'decimate = "{decimate}"']
     if recorder:
         lines += ["[recorder]", recorder]
     path = directory / name

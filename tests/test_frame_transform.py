@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import os
 import subprocess
@@ -269,7 +270,7 @@ def test_decimates_into_vision_when_configured(
     by_fn = {p.fn: p for p in poses}
     for v in out:
         assert v.p == by_fn[v.fn].p and v.t == by_fn[v.fn].t  # a pose the transform made, not a blend
-    gaps = [(b.t - a.t) / 1e6 for a, b in zip(out, out[1:], strict=False)]
+    gaps = [(b.t - a.t) / 1e6 for a, b in itertools.pairwise(out)]
     assert min(gaps) > 16.0 and max(gaps) < 24.0, gaps  # 20 ms slots, picked by measurement time
     assert len(stranger_vision.channel) == 0
 
@@ -289,5 +290,5 @@ def test_decimating_transform_replaces_the_downsampler_processes(
     bad.write_text(
         bad.read_text().replace("[hosts.test]", '[hosts.test]\nvehicle_services = ["downsampler", "gateway"]')
     )
-    with pytest.raises(ConfigError, match="vehicle_services.*the transform decimates"):
+    with pytest.raises(ConfigError, match=r"vehicle_services.*the transform decimates"):
         load(bad)

@@ -1,7 +1,8 @@
 """Load: many simulated vehicles at 240 Hz mocap through the whole pipeline, counted stage by stage.
 
 ``arena up`` runs, each its own process: the router, the simulated vehicles (one process), the Motive
-emulator at 240 Hz, the ingest, the frame transform and, per vehicle, a downsampler and a gateway.  After a
+emulator at 240 Hz, the ingest, the frame transform and, per vehicle, a downsampler and a gateway — or,
+with ``ARENA_SOAK_DECIMATE=transform``, no downsamplers: the transform decimates.  After a
 warm-up the emulator is frozen (SIGSTOP) until the pipeline has drained, every service's counters are
 read, the emulator resumes for the measured window, and is frozen again to read them once more.  Between
 the two readings:
@@ -19,10 +20,12 @@ the two readings:
 
 The figures go to ``bench-results/soak.json`` and are printed.  ``make test`` runs a short version
 (:data:`SHORT_VEHICLES` vehicles, 20 s); ``ARENA_SOAK=full`` (``make soak``) runs 20 vehicles for 10
-minutes.  ``ARENA_SOAK_VEHICLES`` and ``ARENA_SOAK_SECONDS`` override either.  Measured on the 2-core
-development machine: 6 vehicles keep up (≈50 Hz vision each, p99 ≈ 20 ms); at 10 and more the machine is
-saturated (the emulator skips frames, queues overflow, vision falls to 10–30 Hz): size the soak to the
-computer that will run the arena (docs/safety.md has the figures).
+minutes.  ``ARENA_SOAK_VEHICLES`` and ``ARENA_SOAK_SECONDS`` override either; ``ARENA_SOAK_DECIMATE``
+picks the config's ``[pipeline] decimate`` (default: ``downsampler``, ``transform`` when full).
+Measured on the 2-core development machine with
+downsamplers: 6 vehicles keep up (≈50 Hz vision each, p99 ≈ 20 ms); at 10 and more the machine is saturated
+(the emulator skips frames, queues overflow, vision falls to 10–30 Hz). With the transform decimating, 20
+keep up (docs/safety.md has the figures): size the soak to the computer that will run the arena.
 """
 
 from __future__ import annotations
@@ -55,6 +58,7 @@ WINDOW_S = float(os.environ.get("ARENA_SOAK_SECONDS", 600 if FULL else 20))
 WARMUP_S = 30.0 if FULL else 5.0
 MOCAP_HZ = 240.0
 VISION_HZ = 50.0
+DECIMATE = os.environ.get("ARENA_SOAK_DECIMATE", "transform" if FULL else "downsampler")
 
 
 @dataclass
@@ -85,7 +89,8 @@ class Soak:
 
     @property
     def services(self) -> list[str]:
-        per_vehicle = [f"{s}.{n}" for n in self.names for s in ("downsampler", "gateway")]
+        kinds = ("downsampler", "gateway") if DECIMATE == "downsampler" else ("gateway",)
+        per_vehicle = [f"{s}.{n}" for n in self.names for s in kinds]
         return ["router", "sim_vehicle", "sim_mocap", "mocap", "transform", *per_vehicle]
 
     def freeze_and_read(self, drain_s: float = 1.5) -> Snapshot:
@@ -111,7 +116,11 @@ class Soak:
 def soak(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Soak]:
     tmp = tmp_path_factory.mktemp("soak")
     path = write_arena_config(
-        tmp, vehicles=VEHICLES, services=("router", "sim", "mocap", "transform"), mocap_rate=MOCAP_HZ
+        tmp,
+        vehicles=VEHICLES,
+        services=("router", "sim", "mocap", "transform"),
+        mocap_rate=MOCAP_HZ,
+        decimate=DECIMATE,
     )
     cfg = config_mod.load(path)
     names = list(cfg.vehicles)
@@ -193,13 +202,27 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
             - _rej(a, b, gw, "vision: superseded"),  # already counted as "took a newer pose"
         }
     total = {k: sum(v[k] for v in per.values()) for k in next(iter(per.values()))}
+    if DECIMATE == "transform":
+        # The transform decimates: its vision_* counters are the downsamplers' (summed over vehicles).
+        total.update(
+            ds_in=tf_out,
+            ds_out=_delta(a, b, "transform", "vision"),
+            ds_skipped=_delta(a, b, "transform", "vision_skipped"),
+            ds_invalid=_delta(a, b, "transform", "vision_invalid"),
+            ds_outliers=_rej(a, b, "transform", "vision_outlier"),
+            ds_stale=_rej(a, b, "transform", "vision_stale"),
+            ds_dropped=0,
+            ds_other_rejects=0,
+        )
+        tf_rejected -= _rej(a, b, "transform", "vision_")
+    stage = "downsamplers" if DECIMATE == "downsampler" else "transform's decimators"
     # Lost without anyone counting it: must never happen.
     losses = {
         "bus ingest→transform": ingest_out - tf_in - tf_dropped,
         "transform rejected": tf_rejected,
-        "bus transform→downsamplers": tf_out - total["ds_in"] - total["ds_dropped"],
+        f"bus transform→{stage}": tf_out - total["ds_in"] - total["ds_dropped"],
         "downsampler other rejects": total["ds_other_rejects"],
-        "bus downsamplers→gateways": total["ds_out"] - total["on_bus"],
+        "bus decimators→gateways": total["ds_out"] - total["on_bus"],
         "gateway other rejects": total["gw_other_rejects"],
     }
     # The designed answer to a process that falls behind: its newest input wins, older samples go.
@@ -207,7 +230,7 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
         "transform queue full": tf_dropped,
         "downsampler queues full": total["ds_dropped"],
         "gateway took a newer pose": total["on_bus"] - total["gw_in"],
-        "stale at the downsampler": total["ds_stale"],
+        "stale at the decimator": total["ds_stale"],
         "stale at the gateway (>0.1 s)": total["gw_stale"],
     }
     by_design = {
@@ -248,6 +271,7 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
         "mocap_hz": MOCAP_HZ,
         "window_s": round(seconds, 1),
         "mode": "full" if FULL else "short",
+        "decimate": DECIMATE,
         "cores": os.cpu_count(),
         "poses_from_ingest": ingest_out,
         "vision_sent": total["gw_sent"],
@@ -282,7 +306,7 @@ def print_table(result: dict[str, Any], per: dict[str, dict[str, int]]) -> None:
     """The soak's figures as text tables."""
     print(
         f"\nsoak: {result['vehicles']} vehicles, {result['mocap_hz']:.0f} Hz mocap, {result['window_s']} s "
-        f"({result['mode']}, {result['cores']} cores)"
+        f"({result['mode']}, {result['cores']} cores, decimated by the {result['decimate']})"
     )
     print(f"  poses from the ingest {result['poses_from_ingest']}, vision sent {result['vision_sent']}")
     vh = result["vision_hz_per_vehicle"]

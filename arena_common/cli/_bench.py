@@ -57,6 +57,13 @@ def bench(
         bool,
         typer.Option("--hops", help="Also time each stage of the first vehicle (subscribes to its keys)."),
     ] = False,
+    decimate: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--decimate",
+            help="Pipeline configurations: downsampler (chain arena), transform (arena-td); default both.",
+        ),
+    ] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")] = Path(
         "bench-results"
     ),
@@ -94,6 +101,8 @@ def bench(
         changes["rates"] = _numbers(rates, "--rates")
     if floor:
         changes["floors"] = tuple(floor)
+    if decimate:
+        changes["decimate"] = tuple(decimate)
     if duration is not None:
         changes["duration"] = duration
     if warmup is not None:
