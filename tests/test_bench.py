@@ -138,22 +138,24 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
     result = bench.run(options)
 
     points = {p["chain"]: p for p in result["points"]}
-    assert set(points) == {"arena", "arena-v50", "floor-zenoh", "floor-udp"}
-    arena = points["arena"]
-    # Every ODOMETRY found its frame (matched by position and time), and the frames were counted.
-    assert arena["expected"] > 0 and arena["delivered"] > 0
-    assert arena["mismatched"] == 0 and arena["duplicates"] == 0
-    assert arena["delivered"] + arena["lost"] == arena["expected"]
-    assert arena["latency"]["n"] == arena["delivered"]
-    assert 0 < arena["latency"]["p50"] <= arena["latency"]["max"]
-    roles = {info["role"] for info in arena["per_service"].values()}
-    assert {"router", "ingest", "transform", "downsampler", "gateway", "emulator"} <= roles
-    assert all(info["rss"] > 0 for info in arena["per_service"].values())
-    assert arena["idle"], "idle figures of the per-vehicle processes"
-    # At 50 Hz of vision from 180 Hz of mocap the decimator keeps about 5 frames in 18, by design.
-    deployed = points["arena-v50"]
-    assert deployed["designed_drops"] > deployed["expected"] > 0
-    assert deployed["delivered"] > 0 and deployed["mismatched"] == 0
+    assert set(points) == {"arena", "arena-v50", "arena-td", "arena-td-v50", "floor-zenoh", "floor-udp"}
+    for chain, decimator in (("arena", "downsampler"), ("arena-td", "transform")):
+        arena = points[chain]
+        # Every ODOMETRY found its frame (matched by position and time), and the frames were counted.
+        assert arena["expected"] > 0 and arena["delivered"] > 0
+        assert arena["mismatched"] == 0 and arena["duplicates"] == 0
+        assert arena["delivered"] + arena["lost"] == arena["expected"]
+        assert arena["latency"]["n"] == arena["delivered"]
+        assert 0 < arena["latency"]["p50"] <= arena["latency"]["max"]
+        roles = {info["role"] for info in arena["per_service"].values()}
+        assert {"router", "ingest", "transform", "gateway", "emulator"} <= roles
+        assert ("downsampler" in roles) == (decimator == "downsampler")
+        assert all(info["rss"] > 0 for info in arena["per_service"].values())
+        assert arena["idle"], "idle figures of the per-vehicle processes"
+        # At 50 Hz of vision from 180 Hz of mocap the decimator keeps about 5 frames in 18, by design.
+        deployed = points[f"{chain}-v50"]
+        assert deployed["designed_drops"] > deployed["expected"] > 0
+        assert deployed["delivered"] > 0 and deployed["mismatched"] == 0
     for chain in ("floor-zenoh", "floor-udp"):
         assert points[chain]["delivered"] > 0 and points[chain]["latency"]["n"] == points[chain]["delivered"]
 
