@@ -138,7 +138,7 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
     result = bench.run(options)
 
     points = {p["chain"]: p for p in result["points"]}
-    assert set(points) == {"arena", "arena-v50", "arena-td", "arena-td-v50", "floor-zenoh", "floor-udp"}
+    assert set(points) == {"arena", "arena-td", "arena-td-v50", "floor-zenoh", "floor-udp"}
     for chain, decimator in (("arena", "downsampler"), ("arena-td", "transform")):
         arena = points[chain]
         # Every ODOMETRY found its frame (matched by position and time), and the frames were counted.
@@ -152,10 +152,10 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
         assert ("downsampler" in roles) == (decimator == "downsampler")
         assert all(info["rss"] > 0 for info in arena["per_service"].values())
         assert arena["idle"], "idle figures of the per-vehicle processes"
-        # At 50 Hz of vision from 180 Hz of mocap the decimator keeps about 5 frames in 18, by design.
-        deployed = points[f"{chain}-v50"]
-        assert deployed["designed_drops"] > deployed["expected"] > 0
-        assert deployed["delivered"] > 0 and deployed["mismatched"] == 0
+    # At 50 Hz of vision from 180 Hz of mocap the decimator keeps about 5 frames in 18, by design.
+    deployed = points["arena-td-v50"]
+    assert deployed["designed_drops"] > deployed["expected"] > 0
+    assert deployed["delivered"] > 0 and deployed["mismatched"] == 0
     for chain in ("floor-zenoh", "floor-udp"):
         assert points[chain]["delivered"] > 0 and points[chain]["latency"]["n"] == points[chain]["delivered"]
 
