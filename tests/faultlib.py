@@ -674,14 +674,18 @@ class Watch:
 
 
 def max_gap(times: Sequence[float], start: float, end: float) -> float:
-    """The longest interval without an arrival within ``[start, end]`` (the edges count)."""
-    points = [start, *[t for t in times if start < t < end], end]
+    """The longest interval without an arrival within ``[start, end]`` (the edges count).
+
+    ``times`` may be a deque another thread appends to: it is copied first (``tuple`` copies it in one step
+    under the GIL; iterating it directly can fail with "deque mutated during iteration").
+    """
+    points = [start, *[t for t in tuple(times) if start < t < end], end]
     return max(b - a for a, b in itertools.pairwise(points))
 
 
 def first_after(times: Sequence[float], t0: float) -> float | None:
-    """The first time after ``t0``, or None."""
-    return next((t for t in times if t > t0), None)
+    """The first time after ``t0``, or None (``times`` is copied first, as in :func:`max_gap`)."""
+    return next((t for t in tuple(times) if t > t0), None)
 
 
 def wait_time(predicate: Callable[[], Any], timeout: float, what: str, interval: float = 0.01) -> float:
