@@ -322,7 +322,7 @@ def test_several_computers_link_loss_and_recovery(lab: Lab, tmp_path: Path) -> N
             )
         except AssertionError as exc:
             raise AssertionError(f"{exc}\n{context()}") from None
-        assert "transform" in services(watch.alive("ground")), context()
+        wait_for(lambda: "transform" in services(watch.alive("ground")), 10.0, 0.2, what="ground's transform")
 
         # d1 takes off from the user's program: mocap → ground → Wi-Fi → cc1 → autopilot, commands back.
         def takeoff_reported() -> bool:
