@@ -48,7 +48,7 @@ def test_channel_hands_every_item_to_parked_readers_and_close_wakes_them() -> No
         t.start()
     for t in producers:
         t.join(5.0)
-    wait_for(lambda: len(got) == 10_000, 5.0, "every item read")
+    wait_for(lambda: len(got) == 10_000, 5.0, what="every item read")
     ch.close()
     for t in readers:
         t.join(2.0)
@@ -75,7 +75,12 @@ def test_typed_publish_subscribe_and_bad_payload(bus_factory: Callable[[], Bus])
         return [i for i in items if i.payload is not None]
 
     items: list = []
-    wait_for(lambda: (pub.put(POSE), got())[1], what="first pose")
+
+    def sent_and_got() -> list:
+        pub.put(POSE)
+        return got()
+
+    wait_for(sent_and_got, what="first pose")
     raw.put_raw(b"\x81\xa1t\xa3bad")
     pub.put(POSE.replace(fn=9))
     wait_for(lambda: any(i.payload and i.payload.fn == 9 for i in got()), what="pose after bad one")
