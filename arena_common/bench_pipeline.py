@@ -626,6 +626,25 @@ class StatsWatcher:
         self._thread.join(2.0)
 
 
+def _result(
+    chain: str, n: int, rate: float, found: Mapping[str, Any], usage: dict[str, Any], **extra: Any
+) -> PointResult:
+    """A load point from an analysis (``analyze_arena`` or ``analyze_floor``) and the processes' usage."""
+    return PointResult(
+        chain=chain,
+        vehicles=n,
+        rate=rate,
+        latency=latency_stats(found["latencies"]).as_dict(),
+        expected=found["expected"],
+        delivered=found["delivered"],
+        lost=found["lost"],
+        duplicates=found["duplicates"],
+        per_service=usage,
+        load=os.getloadavg()[0],
+        **extra,
+    )
+
+
 def _delta(
     before: Mapping[str, Mapping[str, int]], after: Mapping[str, Mapping[str, int]]
 ) -> dict[str, dict[str, int]]:
@@ -804,19 +823,14 @@ def run_arena(
         records = collector.take()
         frames = decode_frames(records["frames"], body_to_vehicle, transform, version, TICK_FREQUENCY)
         found = analyze_arena(frames, {i: records[i] for i in range(n)}, t0, t1, rate, vision_rate)
-        point = PointResult(
-            chain=chain,
-            vehicles=n,
-            rate=rate,
-            latency=latency_stats(found["latencies"]).as_dict(),
-            expected=found["expected"],
-            delivered=found["delivered"],
-            lost=found["lost"],
+        point = _result(
+            chain,
+            n,
+            rate,
+            found,
+            usage,
             designed_drops=found["designed_drops"],
             mismatched=found["mismatched"],
-            duplicates=found["duplicates"],
-            per_service=usage,
-            load=os.getloadavg()[0],
             idle=idle,
             counters=_delta(before, after),
             profile=profile,
@@ -1101,18 +1115,7 @@ def run_floor(
             _wait_quiet(collector, list(range(n)))
             records = collector.take()
             found = analyze_floor(records["frames"], {i: records[i] for i in range(n)}, t0, t1)
-            point = PointResult(
-                chain=chain,
-                vehicles=n,
-                rate=rate,
-                latency=latency_stats(found["latencies"]).as_dict(),
-                expected=found["expected"],
-                delivered=found["delivered"],
-                lost=found["lost"],
-                duplicates=found["duplicates"],
-                per_service=usage,
-                load=os.getloadavg()[0],
-            )
+            point = _result(chain, n, rate, found, usage)
             results.append(point)
             if on_point is not None:
                 on_point(point)

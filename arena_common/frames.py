@@ -184,36 +184,24 @@ def quat_from_matrix(m: npt.ArrayLike) -> Quat:
             dot = sum(rows[k][i] * rows[k][j] for k in range(3))
             if abs(dot - (1.0 if i == j else 0.0)) > 1e-6:
                 raise FrameError("matrix is not orthonormal")
-    if _det3(rows) < 0:
+    r = rows
+    if _det3(r) < 0:
         raise FrameError("matrix is a reflection (determinant −1), not a rotation")
-    r = _Matrix(rows)
-    trace = r[0, 0] + r[1, 1] + r[2, 2]
+    trace = r[0][0] + r[1][1] + r[2][2]
     # Shepperd: pick the largest of w, x, y, z to divide by, for numerical stability.
-    if trace > max(r[0, 0], r[1, 1], r[2, 2]):
+    if trace > max(r[0][0], r[1][1], r[2][2]):
         s = 2.0 * math.sqrt(1.0 + trace)
-        q = (0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s)
-    elif r[0, 0] >= r[1, 1] and r[0, 0] >= r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = ((r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s)
-    elif r[1, 1] >= r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q = ((r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s)
+        q = (0.25 * s, (r[2][1] - r[1][2]) / s, (r[0][2] - r[2][0]) / s, (r[1][0] - r[0][1]) / s)
+    elif r[0][0] >= r[1][1] and r[0][0] >= r[2][2]:
+        s = 2.0 * math.sqrt(1.0 + r[0][0] - r[1][1] - r[2][2])
+        q = ((r[2][1] - r[1][2]) / s, 0.25 * s, (r[0][1] + r[1][0]) / s, (r[0][2] + r[2][0]) / s)
+    elif r[1][1] >= r[2][2]:
+        s = 2.0 * math.sqrt(1.0 + r[1][1] - r[0][0] - r[2][2])
+        q = ((r[0][2] - r[2][0]) / s, (r[0][1] + r[1][0]) / s, 0.25 * s, (r[1][2] + r[2][1]) / s)
     else:
-        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q = ((r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s)
+        s = 2.0 * math.sqrt(1.0 + r[2][2] - r[0][0] - r[1][1])
+        q = ((r[1][0] - r[0][1]) / s, (r[0][2] + r[2][0]) / s, (r[1][2] + r[2][1]) / s, 0.25 * s)
     return quat_canonical(quat_normalize(q))
-
-
-class _Matrix:
-    """Nested rows indexed as ``r[i, j]`` (what the conversion above reads)."""
-
-    __slots__ = ("rows",)
-
-    def __init__(self, rows: list[list[float]]) -> None:
-        self.rows = rows
-
-    def __getitem__(self, ij: tuple[int, int]) -> float:
-        return self.rows[ij[0]][ij[1]]
 
 
 def _det3(r: list[list[float]]) -> float:

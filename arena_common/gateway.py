@@ -217,7 +217,7 @@ class Gateway:
             vision_sub = bus.subscribe(keys.vision(self.name), capacity=1, ring=True)
             self._thread(self._vision_loop, "vision", vision_sub)
             sp_sub = bus.subscribe(keys.setpoint(self.name), capacity=4, ring=True)
-            self._thread(self.forwarder.run, "setpoints", sp_sub, self._stop)
+            self._thread(self.forwarder.run, "setpoints", sp_sub, self._stop, self._failed)
             estop_sub = bus.subscribe(keys.ESTOP, capacity=16, ring=False)
             self._thread(self._estop_loop, "estop", estop_sub)
             bus.serve(keys.cmd(self.name), self.executor.handle, workers=2)
@@ -302,17 +302,13 @@ class Gateway:
             "mavlink: cannot pack": link.pack_errors,
         }
         for reason, total in totals.items():
-            self._reject_n(reason, total - self._link_counts.get(reason, 0))
+            self.stats.reject(reason, total - self._link_counts.get(reason, 0))
             self._link_counts[reason] = total
         garbage = link.garbage - self._link_counts.get("garbage", 0)
         self._link_counts["garbage"] = link.garbage
         if garbage > 0:
             self.stats.count("mavlink_garbage_bytes", garbage)
             self.stats.reject("mavlink: garbage")
-
-    def _reject_n(self, reason: str, n: int) -> None:
-        for _ in range(max(0, n)):
-            self.stats.reject(reason)
 
     def _failed(self, what: str, exc: BaseException) -> None:
         """One sample made a loop fail: count it, log the first of each kind, and go on."""
@@ -498,7 +494,7 @@ class Gateway:
             item = sub.get(0.2)
             # Samples overwritten in the one-slot ring before this thread took them.
             superseded, dropped = sub.channel.dropped - dropped, sub.channel.dropped
-            self._reject_n("vision: superseded", superseded)
+            self.stats.reject("vision: superseded", superseded)
             if item is None:
                 continue
             self.stats.count("in")

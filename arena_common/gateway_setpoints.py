@@ -24,7 +24,6 @@ The rules, in the order they apply:
 
 from __future__ import annotations
 
-import logging
 import math
 import threading
 import time
@@ -44,8 +43,6 @@ Vec3 = tuple[float, float, float]
 
 MAX_YAW = 1000.0  # rad: a larger yaw is a mistake, not a heading (it would not even fit MAVLink's float32)
 MAX_YAW_RATE = 2.0 * math.pi  # rad/s
-
-_log = logging.getLogger("arena.gateway.setpoints")
 
 
 def yaw_problem(yaw: float | None, yr: float | None = None) -> str | None:
@@ -316,9 +313,13 @@ class SetpointForwarder:
             self.sent += 1
             self.stats.count("setpoints")
 
-    def run(self, sub: Subscription, stop: threading.Event) -> None:
-        """The forwarder's thread: take setpoints from ``sub`` and stream until ``stop``."""
-        failed: set[str] = set()
+    def run(
+        self, sub: Subscription, stop: threading.Event, on_error: Callable[[str, BaseException], None]
+    ) -> None:
+        """The forwarder's thread: take setpoints from ``sub`` and stream until ``stop``.
+
+        A failure of one sample (or send) goes to ``on_error("setpoint", exc)`` and the stream goes on.
+        """
         while not stop.is_set():
             try:
                 wait = self.tick()
@@ -333,11 +334,7 @@ class SetpointForwarder:
                     continue
                 self.offer(item.payload)
             except Exception as exc:  # one bad sample (or send) must never end the stream for good
-                self.stats.reject("setpoint: error")
-                what = type(exc).__name__
-                if what not in failed:
-                    failed.add(what)
-                    _log.exception("setpoint thread: %s (counted as 'setpoint: error'; going on)", what)
+                on_error("setpoint", exc)
                 stop.wait(0.01)
 
 

@@ -72,10 +72,12 @@ class Stats:
         with self._lock:
             self.counts[name] = value
 
-    def reject(self, reason: str) -> None:
-        """Count one rejected input under ``reason``."""
+    def reject(self, reason: str, n: int = 1) -> None:
+        """Count ``n`` rejected inputs (one by default) under ``reason``."""
+        if n <= 0:
+            return
         with self._lock:
-            self.rejected[reason] = self.rejected.get(reason, 0) + 1
+            self.rejected[reason] = self.rejected.get(reason, 0) + n
 
     def latency(self, seconds: float) -> None:
         """Record one latency sample (kept until the next snapshot, at most 10,000)."""

@@ -56,7 +56,7 @@ from arena_common.client import Arena
 from arena_common.config import ArenaConfig
 from arena_common.errors import ConfigError
 from arena_common.mavlink_link import mavlink2
-from arena_common.natnet_server import NatNetServer, TickClock, load_recording
+from arena_common.natnet_server import TickClock, load_recording
 from arena_common.wire import Spec
 from tests.conftest import REPO, free_port, wait_for
 from tests.faultlib import (
@@ -910,17 +910,8 @@ class IngestRig:
         path = write_arena_config(tmp, services=("mocap",), vehicle_services=(), endpoint=endpoint)
         path.write_text(path.read_text().replace('rigid_body = "d1"', 'rigid_body = "RaceQuad"'))
         self.cfg = cfg = config_mod.load(path)
-        m = cfg.mocap
-        self.server = NatNetServer(
-            host=m.server,
-            command_port=m.command_port,
-            data_port=m.data_port,
-            multicast=m.multicast,
-            group=m.group,
-            interface=m.interface,
-            version=self.rec.version,
-            models=self.rec.models,
-            clock=TickClock(self.rec.clock_frequency),
+        self.server = services.sim_mocap.build_server(
+            cfg, self.rec.version, models=self.rec.models, clock=TickClock(self.rec.clock_frequency)
         ).start()
         self.server.clock.align(self.rec.frames[0].transmit or 0, time.perf_counter_ns(), 1.0)
         self.bus = peer_bus(cfg)
