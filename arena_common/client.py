@@ -264,9 +264,11 @@ class Vehicle:
 class OffboardStream:
     """Streams the latest setpoint at a steady rate from its own thread, whatever the user's loop does.
 
-    Each setpoint carries a lease; when the block is left (or the program dies) the stream stops, the
-    leases lapse, and the autopilot's offboard-loss failsafe takes over — command :meth:`Vehicle.hold`,
-    :meth:`Vehicle.goto` or :meth:`Vehicle.land` right after the block to choose what happens instead.
+    Each setpoint carries a lease.  Leaving the block puts the vehicle in Hold (AUTO.LOITER) where it is,
+    as MAVSDK's ``offboard.stop()`` does, before the stream stops: a velocity setpoint does not coast on.
+    Only when the program dies do the leases lapse without that, and the autopilot's offboard-loss
+    failsafe (``COM_OBL_RC_ACT``: Land) takes over.  If Hold is refused, the block's exit raises
+    :class:`~arena_common.errors.CommandError` after stopping the stream (the failsafe then acts).
     """
 
     def __init__(self, vehicle: Vehicle, rate: float, lease: float, engage: bool) -> None:
@@ -348,7 +350,14 @@ class OffboardStream:
     def __exit__(
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
-        self.close()
+        try:
+            if self.vehicle.mode == "OFFBOARD":
+                self.vehicle.hold()  # while our stream still runs: no gap for the failsafe to see
+        except CommandError:
+            if exc_type is None:
+                raise
+        finally:
+            self.close()
 
 
 class Swarm:

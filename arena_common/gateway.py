@@ -27,9 +27,17 @@ counted as rejects (``mavlink: unsigned``, ``mavlink: bad signature``, ``mavlink
 reported in a ``link`` event (``data.signing``: the reasons) at most every 10 s.  Frames forwarded from a
 ground station go out as they are.
 
-Whenever the link comes up and after an autopilot reboot, the gateway sends SET_GPS_GLOBAL_ORIGIN
-(``GatewayOptions.origin``, (0, 0, 0) by default) until the autopilot confirms it, so that PX4 without GPS
-has the global reference its AUTO modes need.
+Our HEARTBEAT says MAV_TYPE_GCS: PX4 sends STATUSTEXT (its failsafe texts and the reasons it refuses a
+command) only on links where it hears a ground station, and those texts become events.  To PX4 we are
+then a ground station: losing our heartbeat for COM_DL_LOSS_T triggers NAV_DLL_ACT (disabled by default;
+the arena relies on the offboard-loss and position-loss failsafes, see ``docs/px4.md``).
+
+Whenever the link comes up and after an autopilot reboot, the gateway asks the autopilot for its EKF
+origin and, only if it has none, gives it ``GatewayOptions.origin`` ((0, 0, 0) by default) with
+SET_GPS_GLOBAL_ORIGIN, so that PX4 without GPS has the global reference its AUTO modes need; an origin
+the EKF already has (GNSS) is never replaced, which would re-base its local frame.  It also asks for
+ESTIMATOR_STATUS at ``estimator_rate``: the published state carries no position the autopilot marks
+invalid, nor one dead-reckoned without vision (``fs``: ``position_invalid``, ``dead_reckoning``).
 """
 
 from __future__ import annotations
@@ -62,8 +70,9 @@ from arena_common.signing import GATEWAY_UNSIGNED, LinkSigning, vehicle_key
 
 __all__ = ["Gateway", "GatewayOptions"]
 
-MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_TYPE_GCS = 6
 MAV_AUTOPILOT_INVALID = 8
+MSG_ESTIMATOR_STATUS = 230
 
 
 @dataclass(frozen=True, slots=True)
@@ -87,8 +96,9 @@ class GatewayOptions:
     allow_gcs_manual: bool = False  # forward RC_CHANNELS_OVERRIDE / MANUAL_CONTROL from the GCS
     check_at_start: bool = True  # read the arena parameters whenever the link comes up
     gcs: str | None = None  # overrides the vehicle's `gcs` connection string when not None
-    # EKF global origin (lat deg, lon deg, alt m AMSL) sent with SET_GPS_GLOBAL_ORIGIN; None: never sent
+    # EKF global origin (lat deg, lon deg, alt m AMSL) given to an EKF that has none; None: never sent
     origin: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
+    estimator_rate: float = 5.0  # Hz of ESTIMATOR_STATUS asked for (position validity); 0: not asked
 
 
 class Gateway:
@@ -143,7 +153,7 @@ class Gateway:
         )
         self.commander = MavCommander(self.link, v.system_id, ack_timeout=o.ack_timeout, attempts=o.attempts)
         self.params = ParamClient(self.link, v.system_id, timeout=o.ack_timeout, attempts=o.attempts)
-        self.setup = SetupChecker(self.params, self.events)
+        self.setup = SetupChecker(self.params, self.events, reboot_required=self._reboot_required)
         self.forwarder = SetpointForwarder(
             self.link,
             v.system_id,
@@ -183,6 +193,7 @@ class Gateway:
             MSG["ATTITUDE_QUATERNION"]: self.state.on_attitude,
             MSG["BATTERY_STATUS"]: self.state.on_battery,
             MSG["STATUSTEXT"]: self.state.on_statustext,
+            MSG["ESTIMATOR_STATUS"]: self.state.on_estimator_status,
             MSG["TIMESYNC"]: self.timesync.on_timesync,
             MSG["COMMAND_ACK"]: self.commander.on_ack,
             MSG["PARAM_VALUE"]: self.params.on_param_value,
@@ -199,6 +210,8 @@ class Gateway:
         self._started = False
         self._failures: set[tuple[str, str]] = set()
         self._link_counts: dict[str, int] = {}
+        self._intervals_wanted = False
+        self._position_problem: str | None = None
 
     # -- lifetime ------------------------------------------------------------------------------------
     def start(self) -> Gateway:
@@ -276,9 +289,7 @@ class Gateway:
     def _every_second(self, now: float) -> None:
         self._count_link_rejects()
         self.link.send(
-            self.link.mav.heartbeat_encode(
-                MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, px4.MAV_STATE_ACTIVE
-            )
+            self.link.mav.heartbeat_encode(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, px4.MAV_STATE_ACTIVE)
         )
         self.timesync.request()
         ts = self.timesync
@@ -344,6 +355,11 @@ class Gateway:
                 self.origin.request(now)
             else:
                 self.origin.supervise(now)
+        if self._intervals_wanted and self.state.link:
+            self._intervals_wanted = False
+            if self.options.estimator_rate > 0:
+                interval_us = 1e6 / self.options.estimator_rate
+                self.commander.send(px4.MAV_CMD_SET_MESSAGE_INTERVAL, (MSG_ESTIMATOR_STATUS, interval_us))
         if self._check_wanted and self.state.link and not self._checking.locked():
             self._check_wanted = False
             threading.Thread(target=self._background_check, name=f"gw-{self.name}-check", daemon=True).start()
@@ -357,15 +373,21 @@ class Gateway:
     def _link_changed(self, up: bool) -> None:
         if up:
             self._origin_wanted = True
+            self._intervals_wanted = True
         if up and self.options.check_at_start:
             self._check_wanted = True
 
     def _rebooted(self) -> None:
         self._origin_wanted = True
+        self._intervals_wanted = True
         self.timesync.reset()
-        self.setup.ok = None
+        self.setup.rebooted()
         if self.options.check_at_start:
             self._check_wanted = True
+
+    def _reboot_required(self, deadline: float) -> frozenset[str] | None:
+        """Names of the autopilot's parameters that need a reboot, from its own metadata (None: unknown)."""
+        return None
 
     def _rejected(self, reason: str, frame: Frame) -> None:
         """A frame of the vehicle failed the signature check (reader thread)."""
@@ -415,10 +437,23 @@ class Gateway:
             and math.dist(p, mp) <= self.options.fused_tolerance
         )
         flags = s.flags(now)
+        problem = s.estimate_problem(now)
         if vis_age is None or vis_age > px4.EV_TIMEOUT_S:
             flags.append("vision_stale")
+            if p is not None and problem is None:
+                problem = "no vision reaching the autopilot: its position is dead-reckoned"
+                flags.append("dead_reckoning")
+        if problem is not None and "dead_reckoning" not in flags:
+            flags.append("position_invalid")
+        if problem != self._position_problem:
+            self._position_problem = problem
+            if problem is not None:
+                self.events.emit("estimator", f"position not valid: {problem}", 3, reason=problem)
+            else:
+                self.events.emit("estimator", "position valid again", 6)
         if self.forwarder.latched is not None and s.mode != "OFFBOARD":
             flags.append("offboard_latched")
+        valid = p is not None and problem is None
         bat = s.bat
         msg = wire.State(
             t=t,
@@ -427,8 +462,8 @@ class Gateway:
             armed=s.armed,
             mode=s.mode,
             landed=s.landed,
-            p=p if p is not None and all(math.isfinite(c) for c in p) else None,
-            v=s.v if p is not None and s.v is not None and all(math.isfinite(c) for c in s.v) else None,
+            p=p if p is not None and valid and all(math.isfinite(c) for c in p) else None,
+            v=s.v if valid and s.v is not None and all(math.isfinite(c) for c in s.v) else None,
             q=s.q,
             mp=mp,
             bat=None if bat is None else min(1.0, max(0.0, bat)),

@@ -27,11 +27,17 @@ goto           p [n, e, d] m, yaw (rad, default current),  the gateway streams a
                                                            ground), switches to OFFBOARD, and holds p until
                                                            a user stream or another mode takes over; with
                                                            ``wait`` it answers once within ``tol``
-reboot         —                                           PREFLIGHT_REBOOT_SHUTDOWN(1), refused when armed
+reboot         —                                           PREFLIGHT_REBOOT_SHUTDOWN(1), refused when armed;
+                                                           answers once the autopilot is back (its boot
+                                                           clock restarted)
 param_get      name                                        value {name, value, type}
 param_set      name, value                                 written in the vehicle's type, read back
 check          —                                           the arena parameters, value {ok, params: …}
-setup          —                                           writes the differing ones, then checks again
+setup          —                                           refused when armed; writes the differing ones;
+                                                           when one needs a reboot (the autopilot's own
+                                                           metadata says which), reboots the autopilot and
+                                                           waits for it; then checks every value again.
+                                                           Until that reboot, arming is refused
 ping           —                                           value {link, mode, armed, rtt, …}
 =============  ==========================================  ==================================================
 """
@@ -199,6 +205,11 @@ class CommandExecutor:
         """Why arming is refused under the arena's rules, or None."""
         if not self.state.link:
             return "no heartbeat from the autopilot"
+        if self.setup.reboot_pending:
+            return (
+                f"{', '.join(self.setup.reboot_pending)} written but in effect only after a reboot: "
+                f"`arena px4 reboot {self.vehicle.name}` (or power-cycle the vehicle)"
+            )
         if self.vehicle.require_setup:
             if self.setup.ok is None:
                 self.setup.check(deadline)
@@ -309,9 +320,18 @@ class CommandExecutor:
         return math.dist(p, goal) if p is not None else math.inf
 
     def _reboot(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        """Reboot the autopilot and wait until it is back (its boot clock restarted, heartbeats again)."""
         if self.state.armed:
             return _refused("armed: disarm first")
-        return _result(self.commander.command(px4.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, (1,), deadline))
+        s = self.state
+        before, boot_ms = s.reboots, s.boot_ms
+        result = self.commander.command(px4.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, (1,), deadline)
+        if result != "ACCEPTED":
+            return _result(result, "the autopilot did not accept PREFLIGHT_REBOOT_SHUTDOWN: power-cycle it")
+        # Back: its boot clock restarted (a reboot soon after the last one is not a jump of > 1 s).
+        if not s.wait(lambda: (s.reboots > before or 0 <= s.boot_ms < boot_ms) and s.link, deadline):
+            return _result("TIMEOUT", "reboot accepted, but the autopilot is not back yet")
+        return _result("ACCEPTED", reboots=self.state.reboots)
 
     def _param_get(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
         name = _string(args, "name")
@@ -352,16 +372,27 @@ class CommandExecutor:
         )
 
     def _setup(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        if self.state.armed:
+            return _refused("armed: parameters are written on the ground only")
         report = self.setup.setup(deadline)
         if not report["complete"]:
             return _result("TIMEOUT", "no parameter answered", **report)
+        if report["ok"] and self.setup.reboot_pending:
+            pending = ", ".join(self.setup.reboot_pending)
+            rebooted = self._reboot({}, deadline)
+            if not rebooted.ok:
+                return _result(
+                    "FAILED",
+                    f"{pending} take effect only after a reboot: {rebooted.result} ({rebooted.reason}); "
+                    "arming is refused until the autopilot reboots",
+                    **report,
+                )
+            verified = self.setup.check(deadline)
+            report = {**report, **verified, "rebooted": True}
         if report["ok"]:
-            note = (
-                " (reboot required for " + ", ".join(report["reboot_required"]) + ")"
-                if report["reboot_required"]
-                else ""
-            )
-            return _result("ACCEPTED", f"arena parameters set{note}", **report)
+            rebooted_for = ", ".join(report["reboot_required"])
+            note = f" (rebooted for {rebooted_for})" if report.get("rebooted") else ""
+            return _result("ACCEPTED", f"arena parameters set and verified{note}", **report)
         return _result("FAILED", "; ".join(report["failed"]) or "parameters still differ", **report)
 
     def _ping(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:

@@ -36,6 +36,7 @@ __all__ = [
 ]
 
 MAV_AUTOPILOT_INVALID = 8
+_MSG_GPS_GLOBAL_ORIGIN = 49
 
 
 class GatewayError(ArenaError, ValueError):
@@ -48,6 +49,11 @@ _STATUS_FLAGS = {
     px4.MAV_STATE_EMERGENCY: "emergency",
     px4.MAV_STATE_FLIGHT_TERMINATION: "terminated",
 }
+_EST_REQUIRED = (
+    (px4.ESTIMATOR_ATTITUDE, "attitude"),
+    (px4.ESTIMATOR_VELOCITY_HORIZ, "horizontal velocity"),
+    (px4.ESTIMATOR_POS_HORIZ_REL, "horizontal position"),
+)
 _BATTERY_FLAGS = {2: "battery_low", 3: "battery_critical", 4: "battery_emergency", 5: "battery_failed"}
 
 
@@ -135,6 +141,8 @@ class VehicleState:
         self.battery_flag = ""
         self.boot_ms = -1
         self.reboots = 0
+        self.est_flags: int | None = None  # ESTIMATOR_STATUS.flags, None before the first
+        self.est_time = -math.inf
         self.on_mode_change: list[Callable[[str, str], None]] = []
         self.on_reboot: list[Callable[[], None]] = []
         self.on_link_change: list[Callable[[bool], None]] = []
@@ -196,6 +204,9 @@ class VehicleState:
             self.q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
         self._boot_time(int(msg.time_boot_ms))
 
+    def on_estimator_status(self, msg: Any, now: float) -> None:
+        self.est_flags, self.est_time = int(msg.flags), now
+
     def _boot_time(self, boot_ms: int) -> None:
         if self.boot_ms >= 0 and boot_ms + 1000 < self.boot_ms:
             self.reboots += 1
@@ -255,8 +266,21 @@ class VehicleState:
                 cb(False)
 
     def position(self, now: float, max_age: float = 0.5) -> tuple[float, float, float] | None:
-        """The autopilot's position estimate if it is fresh."""
+        """The autopilot's position estimate if it is fresh (valid or not: see :meth:`estimate_problem`)."""
         return self.p if now - self.p_time <= max_age else None
+
+    def estimate_problem(self, now: float, max_age: float = 3.0) -> str | None:
+        """Why the autopilot itself says its position estimate is not valid (ESTIMATOR_STATUS), or None.
+
+        None also when no ESTIMATOR_STATUS arrived within ``max_age`` s: the autopilot said nothing.
+        """
+        flags = self.est_flags
+        if flags is None or now - self.est_time > max_age:
+            return None
+        missing = [name for bit, name in _EST_REQUIRED if not flags & bit]
+        if not flags & (px4.ESTIMATOR_POS_VERT_ABS | px4.ESTIMATOR_POS_VERT_AGL):
+            missing.append("vertical position")
+        return "estimator: no " + ", ".join(missing) if missing else None
 
     def yaw(self) -> float | None:
         return yaw_of(self.q) if self.q is not None else None
@@ -364,12 +388,14 @@ def check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
 
 
 class GlobalOrigin:
-    """Gives the autopilot's EKF a global origin with SET_GPS_GLOBAL_ORIGIN, as mavros's set_gp_origin does.
+    """Gives an autopilot that has no EKF origin one with SET_GPS_GLOBAL_ORIGIN, as mavros's set_gp_origin.
 
-    Without GPS, PX4 has no global reference, and its AUTO modes (takeoff, land, hold) need one.
-    :meth:`request` (link up, autopilot rebooted) sends it to the vehicle's system id (never 0) at once;
-    :meth:`supervise` resends it every ``period`` s until the autopilot reports the same origin in
-    GPS_GLOBAL_ORIGIN (PX4 answers every SET_GPS_GLOBAL_ORIGIN with it), at most ``attempts`` times.
+    Without GPS, PX4 has no global reference, and its AUTO modes (takeoff, land, hold) need one.  An EKF
+    that already has an origin (GNSS, or set before) must keep it: a new one re-bases its local frame.
+    So :meth:`request` (link up, autopilot rebooted) first asks for GPS_GLOBAL_ORIGIN (REQUEST_MESSAGE;
+    PX4 sends it only when its origin is valid) for ``ask_s`` s; only when none comes does it send ours
+    to the vehicle's system id (never 0), every ``period`` s, until the autopilot reports it back, at
+    most ``attempts`` times.
     """
 
     def __init__(
@@ -381,6 +407,7 @@ class GlobalOrigin:
         *,
         period: float = 1.0,
         attempts: int = 5,
+        ask_s: float = 2.0,
     ) -> None:
         if not 1 <= int(target_system) <= 250:
             raise GatewayError(f"the origin's target system must be within 1..250, got {target_system}")
@@ -392,22 +419,35 @@ class GlobalOrigin:
         self.events = events
         self.period = period
         self.attempts = attempts
+        self.ask_s = ask_s
         self.sent = 0
         self.confirmed = False
+        self.kept = False  # the autopilot had an origin of its own: left alone
         self.reported: tuple[float, float, float] | None = None
+        self._asking_until = -math.inf
         self._left = 0
         self._next = math.inf
 
     def request(self, now: float) -> None:
-        """Send the origin now and keep resending it until confirmed."""
-        self.confirmed = False
+        """Ask whether the autopilot has an origin; give it ours if it has none."""
+        self.confirmed = self.kept = False
+        self.reported = None
+        self._asking_until = now + self.ask_s
         self._left = self.attempts
         self._next = now
         self.supervise(now)
 
     def supervise(self, now: float) -> None:
-        """Resend when due (the supervisor calls it)."""
-        if self.confirmed or now < self._next:
+        """Ask or resend when due (the supervisor calls it)."""
+        if self.confirmed or self.kept or now < self._next:
+            return
+        self._next = now + self.period / 2
+        if now < self._asking_until:
+            self.link.send(
+                self.link.mav.command_long_encode(
+                    self.target, 1, px4.MAV_CMD_REQUEST_MESSAGE, 0, _MSG_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0
+                )
+            )
             return
         if self._left <= 0:
             self._next = math.inf
@@ -429,11 +469,24 @@ class GlobalOrigin:
             self.sent += 1
 
     def on_gps_global_origin(self, msg: Any, now: float) -> None:
-        """The autopilot's origin (GPS_GLOBAL_ORIGIN): confirms ours when it matches."""
+        """The autopilot's origin (GPS_GLOBAL_ORIGIN): kept when it had one, else confirms ours."""
         self.reported = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+        if self.sent == 0 and not self.kept and not self.confirmed:
+            if now >= self._asking_until + self.period:
+                return  # not asked for (a stream); our request decides
+            self.kept = True
+            self._next = math.inf
+            lat, lon, alt = self.reported
+            self.events.emit(
+                "setup",
+                f"the autopilot has an EKF origin ({lat:.7f}, {lon:.7f}, {alt:.2f} m): left as it is",
+                6,
+                origin=list(self.reported),
+            )
+            return
         lat_e7, lon_e7, alt_mm = self._wire
         match = msg.latitude == lat_e7 and msg.longitude == lon_e7 and abs(msg.altitude - alt_mm) <= 10
-        if match and not self.confirmed and self._left < self.attempts:
+        if match and not self.confirmed:
             self.confirmed = True
             self._next = math.inf
             lat, lon, alt = self.origin

@@ -81,6 +81,7 @@ MSG: dict[str, int] = {
         "ODOMETRY",
         "GPS_GLOBAL_ORIGIN",
         "RADIO_STATUS",
+        "ESTIMATOR_STATUS",
     )
 }
 

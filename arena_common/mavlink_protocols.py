@@ -14,14 +14,14 @@ import collections
 import struct
 import threading
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from arena_common import px4
 from arena_common.gateway_parts import EventSink
 from arena_common.mavlink_link import MavlinkLink
 
-__all__ = ["REBOOT_REQUIRED", "MavCommander", "ParamClient", "SetupChecker", "param_equal"]
+__all__ = ["MavCommander", "ParamClient", "RebootRequired", "SetupChecker", "param_equal"]
 
 _PARAM_TYPE_NAMES = {
     px4.MAV_PARAM_TYPE_UINT8: "UINT8",
@@ -32,8 +32,9 @@ _PARAM_TYPE_NAMES = {
     px4.MAV_PARAM_TYPE_INT32: "INT32",
     px4.MAV_PARAM_TYPE_REAL32: "REAL32",
 }
-#: PX4 parameters that take effect only after a reboot (of those the arena sets).
-REBOOT_REQUIRED = frozenset({"EKF2_MAG_TYPE"})
+#: Where the names of the parameters that take effect only after a reboot come from: a callable that
+#: returns them (from the autopilot's own metadata) or None when it cannot tell.
+RebootRequired = Callable[[float], "frozenset[str] | None"]
 
 
 class MavCommander:
@@ -208,7 +209,12 @@ def param_equal(have: px4.ParamValue, want: px4.ParamValue, param_type: int) -> 
 class SetupChecker:
     """Checks (and sets) the parameters the arena requires (:data:`~arena_common.px4.ARENA_REQUIRED_PARAMS`).
 
-    :attr:`ok` is None until a check completed, then whether every parameter matched.
+    :attr:`ok` is None until a check completed, then whether every parameter matched.  Which parameters
+    need a reboot to take effect comes from ``reboot_required`` (the autopilot's own metadata); when it
+    cannot tell, every parameter written is taken to need one.  :attr:`reboot_pending` names those written
+    since the autopilot last rebooted: the vehicle must not fly before it reboots (PX4 v1.16 keeps using
+    the old EKF2_HGT_REF, EKF2_EV_DELAY, EKF2_MAG_TYPE… and changes of the height reference at runtime
+    make the local position jump).
     """
 
     def __init__(
@@ -216,13 +222,21 @@ class SetupChecker:
         params: ParamClient,
         events: EventSink,
         required: Mapping[str, tuple[px4.ParamValue, int]] = px4.ARENA_REQUIRED_PARAMS,
+        reboot_required: RebootRequired | None = None,
     ) -> None:
         self.params = params
         self.events = events
         self.required = dict(required)
+        self.reboot_required = reboot_required
         self.ok: bool | None = None
         self.report: dict[str, Any] = {}
+        self.reboot_pending: tuple[str, ...] = ()
         self._lock = threading.Lock()
+
+    def rebooted(self) -> None:
+        """The autopilot rebooted: what was written is now in effect, and must be checked again."""
+        self.ok = None
+        self.reboot_pending = ()
 
     def _rows(self, got: Mapping[str, tuple[px4.ParamValue, int]]) -> dict[str, dict[str, Any]]:
         rows: dict[str, dict[str, Any]] = {}
@@ -286,7 +300,12 @@ class SetupChecker:
         report = self.check(deadline)
         report["written"] = written
         report["failed"] = failed
-        report["reboot_required"] = sorted(REBOOT_REQUIRED.intersection(written))
+        known = self.reboot_required(deadline) if self.reboot_required is not None and written else None
+        need = sorted(known.intersection(written) if known is not None else written)
+        report["reboot_required"] = need
+        report["reboot_metadata"] = known is not None
+        if need:
+            self.reboot_pending = tuple(sorted({*self.reboot_pending, *need}))
         if written:
-            self.events.emit("setup", f"wrote {', '.join(written)}", 5, written=written)
+            self.events.emit("setup", f"wrote {', '.join(written)}", 5, written=written, reboot_required=need)
         return report

@@ -437,6 +437,18 @@ EV_FUSED_ESTIMATOR_TYPES: Final = frozenset(
     {MAV_ESTIMATOR_TYPE_UNKNOWN, MAV_ESTIMATOR_TYPE_NAIVE, MAV_ESTIMATOR_TYPE_VISION, MAV_ESTIMATOR_TYPE_VIO}
 )
 
+# --- ESTIMATOR_STATUS flags (MAVLink ESTIMATOR_STATUS_FLAGS) ---------------------------------------
+ESTIMATOR_ATTITUDE: Final = 1
+ESTIMATOR_VELOCITY_HORIZ: Final = 2
+ESTIMATOR_VELOCITY_VERT: Final = 4
+ESTIMATOR_POS_HORIZ_REL: Final = 8
+ESTIMATOR_POS_HORIZ_ABS: Final = 16
+ESTIMATOR_POS_VERT_ABS: Final = 32
+ESTIMATOR_POS_VERT_AGL: Final = 64
+ESTIMATOR_CONST_POS_MODE: Final = 128
+ESTIMATOR_GPS_GLITCH: Final = 1024
+ESTIMATOR_ACCEL_ERROR: Final = 2048
+
 # --- SET_POSITION_TARGET_LOCAL_NED type_mask --------------------------------------------------------
 TYPEMASK_X_IGNORE: Final = 1
 TYPEMASK_Y_IGNORE: Final = 2
@@ -486,7 +498,7 @@ def odometry_args(
     velocity_ned: Sequence[float] | None = None,
     *,
     reset_counter: int = 0,
-    frame_id: int = MAV_FRAME_LOCAL_FRD,
+    frame_id: int = MAV_FRAME_LOCAL_NED,
     angular_velocity_frd: Sequence[float] | None = None,
     estimator_type: int = MAV_ESTIMATOR_TYPE_VISION,
     quality: int = 0,
@@ -494,7 +506,9 @@ def odometry_args(
     """Keyword arguments for pymavlink's ``mav.odometry_send``/``odometry_encode`` carrying an arena pose.
 
     ``position_ned`` (m) and ``q_frd`` (w, x, y, z; body FRD → arena) are in the arena frame, sent with
-    ``frame_id`` LOCAL_FRD (default) or LOCAL_NED. The child frame is BODY_FRD, so ``velocity_ned``
+    ``frame_id`` LOCAL_NED (default: the calibrated arena frame is NED, so PX4 aligns its yaw to it) or
+    LOCAL_FRD (PX4 v1.16 then treats the heading as arbitrary: it fuses the pose but never aligns yaw, so
+    it publishes no global position and refuses to arm). The child frame is BODY_FRD, so ``velocity_ned``
     (m/s, arena frame) is rotated into the body frame here; ``None`` sends NaN (unknown), as do the
     angular velocity when not given and all covariances. ``reset_counter`` must change whenever the
     pose jumps. ``time_usec`` is the measurement time in the sender's clock (the one it answers

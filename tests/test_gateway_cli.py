@@ -29,7 +29,8 @@ def test_px4_check_then_setup_print_tables(make_rig: Callable[..., Rig]) -> None
     assert res.exit_code == 0, res.output
     row = next(line for line in res.output.splitlines() if line.startswith("EKF2_EV_CTRL"))
     assert row.split() == ["EKF2_EV_CTRL", "INT32", "15", "15", "ok", "(written)"]
-    assert "reboot the vehicle for EKF2_MAG_TYPE" in res.output and "d1: setup ACCEPTED" in res.output
+    assert "rebooted the autopilot for" in res.output and "EKF2_HGT_REF" in res.output
+    assert "d1: setup ACCEPTED" in res.output
     for name, (value, _) in px4.ARENA_REQUIRED_PARAMS.items():
         assert rig.aps["d1"].param(name) == value or abs(float(rig.aps["d1"].param(name)) - value) < 1e-6
 

@@ -193,11 +193,7 @@ def test_vision_sender_odometry_fields_and_rules(link_pair: tuple[MavlinkLink, A
     assert sender.offer(pose) is None
     odo = recv(vehicle, "ODOMETRY")
     assert odo.time_usec == pose.t // 1000
-    assert (odo.frame_id, odo.child_frame_id, odo.estimator_type) == (
-        20,
-        12,
-        2,
-    )  # LOCAL_FRD, BODY_FRD, VISION
+    assert (odo.frame_id, odo.child_frame_id, odo.estimator_type) == (1, 12, 2)  # LOCAL_NED, BODY_FRD, VISION
     assert (odo.x, odo.y, odo.z) == pytest.approx((1.0, -0.5, -1.2))
     assert odo.q == pytest.approx(list(q), abs=1e-6)
     vb = (odo.vx, odo.vy, odo.vz)  # body-frame velocity: 0.5 m/s north seen from a body yawed 0.5 rad

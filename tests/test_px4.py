@@ -174,7 +174,7 @@ def test_odometry_args_encode_and_rotate_velocity() -> None:
     yaw = math.radians(90)
     q = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
     args = px4.odometry_args(123456, (1.0, -2.0, -0.5), q, (1.0, 0.0, 0.0), reset_counter=3)
-    assert args["frame_id"] == mavlink.MAV_FRAME_LOCAL_FRD
+    assert args["frame_id"] == mavlink.MAV_FRAME_LOCAL_NED  # what PX4 v1.16 aligns its yaw to
     assert args["child_frame_id"] == mavlink.MAV_FRAME_BODY_FRD
     assert args["estimator_type"] == mavlink.MAV_ESTIMATOR_TYPE_VISION
     assert (args["x"], args["y"], args["z"]) == (1.0, -2.0, -0.5)

@@ -91,9 +91,14 @@ def _run(
         for line in table(result.value):
             typer.echo(line)
     reboot = result.value.get("reboot_required") or []
-    if reboot:
+    if reboot and result.value.get("rebooted"):
         typer.echo(
-            f"reboot the vehicle for {', '.join(reboot)} to take effect (arena px4 … or `reboot` command)"
+            f"rebooted the autopilot for {', '.join(reboot)} to take effect, then read every value back"
+        )
+    elif reboot:
+        typer.echo(
+            f"{', '.join(reboot)} take effect only after a reboot: `arena px4 reboot {drone}` or power-cycle"
+            " the vehicle (arming is refused until then)"
         )
     verdict = f"{drone}: {op} {result.result}" + (f" — {result.reason}" if result.reason else "")
     typer.echo(verdict, err=not result.ok)
@@ -118,15 +123,29 @@ def check(
 @px4_app.command("setup")
 def setup(
     drone: Drone,
-    timeout: Timeout = 15.0,
+    timeout: Timeout = 60.0,
     config: ConfigOpt = None,
     mode: ModeOpt = None,
     connect: ConnectOpt = None,
     listen: ListenOpt = None,
     zconfig: ZConfigOpt = None,
 ) -> None:
-    """Write the arena's required PX4 parameters of DRONE that differ, then read all of them back."""
+    """Write the arena's required PX4 parameters of DRONE that differ, reboot it when one needs it, verify."""
     _run("setup", drone, timeout, config, mode, connect, listen, zconfig)
+
+
+@px4_app.command("reboot")
+def reboot(
+    drone: Drone,
+    timeout: Timeout = 60.0,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+) -> None:
+    """Reboot the autopilot of DRONE (refused when armed) and wait until it is back."""
+    _run("reboot", drone, timeout, config, mode, connect, listen, zconfig)
 
 
 @px4_app.command("keygen")
