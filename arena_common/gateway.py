@@ -65,6 +65,7 @@ from arena_common.gateway_parts import (
 from arena_common.gateway_setpoints import SetpointForwarder
 from arena_common.mavlink_link import MSG, Frame, GcsForwarder, MavlinkLink, MavlinkLinkError, mavlink2
 from arena_common.mavlink_protocols import MavCommander, ParamClient, SetupChecker
+from arena_common.px4_metadata import HANDLED_MESSAGES, MetadataClient, MetadataError, reboot_required
 from arena_common.service import Stats
 from arena_common.signing import GATEWAY_UNSIGNED, LinkSigning, vehicle_key
 
@@ -153,6 +154,10 @@ class Gateway:
         )
         self.commander = MavCommander(self.link, v.system_id, ack_timeout=o.ack_timeout, attempts=o.attempts)
         self.params = ParamClient(self.link, v.system_id, timeout=o.ack_timeout, attempts=o.attempts)
+        # The autopilot's own parameter metadata (COMPONENT_METADATA + MAVLink FTP): which parameters need
+        # a reboot.  Never reset an FTP session: a ground station may be using it through the forwarder.
+        self.metadata = MetadataClient(self.link, v.system_id, reset_busy=False)
+        self._reboot_names: frozenset[str] | None = None
         self.setup = SetupChecker(self.params, self.events, reboot_required=self._reboot_required)
         self.forwarder = SetpointForwarder(
             self.link,
@@ -198,6 +203,8 @@ class Gateway:
             MSG["COMMAND_ACK"]: self.commander.on_ack,
             MSG["PARAM_VALUE"]: self.params.on_param_value,
         }
+        for msgid in HANDLED_MESSAGES:
+            self._handlers[msgid] = self.metadata.on_message
         if self.origin is not None:
             self._handlers[MSG["GPS_GLOBAL_ORIGIN"]] = self.origin.on_gps_global_origin
         self._stop = threading.Event()
@@ -381,13 +388,27 @@ class Gateway:
         self._origin_wanted = True
         self._intervals_wanted = True
         self.timesync.reset()
+        self._reboot_names = None  # it may be another firmware now
         self.setup.rebooted()
         if self.options.check_at_start:
             self._check_wanted = True
 
     def _reboot_required(self, deadline: float) -> frozenset[str] | None:
         """Names of the autopilot's parameters that need a reboot, from its own metadata (None: unknown)."""
-        return None
+        if self._reboot_names is None:
+            try:
+                self._reboot_names = reboot_required(
+                    self.metadata.fetch(min(deadline, time.monotonic() + 10.0))
+                )
+            except MetadataError as exc:
+                self.events.emit(
+                    "setup",
+                    f"no parameter metadata from the autopilot ({exc}): every parameter written is taken "
+                    "to need a reboot",
+                    5,
+                )
+                return None
+        return self._reboot_names
 
     def _rejected(self, reason: str, frame: Frame) -> None:
         """A frame of the vehicle failed the signature check (reader thread)."""

@@ -246,6 +246,7 @@ class VehicleState:
                 return
             text = "".join(parts)
             del self._text_parts[chunk_id]
+        text = text.strip()  # PX4 ends texts it also sent as events with a tab
         sev = int(msg.severity)
         kind = "failsafe" if "failsafe" in text.lower() else "statustext"
         self.events.emit(kind, text, sev)

@@ -200,6 +200,10 @@ def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
+#: Commands that only ask the autopilot for messages (the gateway's own: origin, estimator status).
+DATA_REQUESTS = frozenset({px4.MAV_CMD_SET_MESSAGE_INTERVAL, px4.MAV_CMD_REQUEST_MESSAGE})
+
+
 class TapAutopilot(SimAutopilot):
     """The simulated PX4, recording and checking every ODOMETRY, setpoint and COMMAND_LONG it receives.
 
@@ -219,8 +223,10 @@ class TapAutopilot(SimAutopilot):
             name = msg.get_type()
             if name in WATCHED:
                 problem = self._judge(name, msg)
+                if name == "COMMAND_LONG" and msg.command in DATA_REQUESTS:
+                    name = "COMMAND_LONG (data request)"  # the gateway asking for messages, not acting
                 age = time.time() - msg.time_usec * 1e-6 if name == "ODOMETRY" else math.nan
-                p = (msg.x, msg.y, msg.z) if name != "COMMAND_LONG" else None
+                p = (msg.x, msg.y, msg.z) if hasattr(msg, "x") else None
                 with self.tap.lock:
                     self.tap.counts[name] += 1
                     self.tap.arrivals.append(Arrival(time.monotonic(), name, problem, age, p))
