@@ -16,6 +16,11 @@ capture's SERVERINFO (application, clock) and MODELDEF are served (JSON lines ho
 after the configured vehicle with the same id, else ``RigidBody<id>``, and the clock is estimated). The
 service returns when the replay ends.
 
+Clients: the server listens on ``mocap.server``:``mocap.command_port`` and streams to the group
+``mocap.group``:``mocap.data_port`` (``mocap.multicast``), or by unicast as Motive serves each generation of
+client: NatNet 4 SDK clients on the socket that sent CONNECT, from the data port; older clients
+(libmotioncapture, NatNet SDK 3.x) on the data port of their address (:mod:`arena_common.natnet_sessions`).
+
 Stats (every second): ``frames`` sent, ``dropped``, ``occluded`` and ``untracked`` body-frames, ``late``
 frames skipped because the loop fell behind, ``truth`` poses received, ``clients`` connected (a level).
 """

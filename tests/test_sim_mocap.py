@@ -56,7 +56,9 @@ Y_UP_Q = (0.0, -S, 0.0, S)
 
 
 class Client:
-    """A NatNet command-socket client on 127.0.0.1 (unicast frames arrive on this same socket)."""
+    """A NatNet 4 SDK-like command-socket client on 127.0.0.1: its CONNECT declares NatNet 4.1, so unicast
+    frames arrive on this same socket (older clients get them on the data port: tests/test_natnet_clients.py).
+    """
 
     def __init__(self, command_port: int) -> None:
         self.server = ("127.0.0.1", command_port)
@@ -86,7 +88,8 @@ class Client:
         raise AssertionError(f"no message {expect} from {self.server} after {tries} tries")
 
     def connect(self) -> natnet.ServerInfo:
-        return natnet.decode_server_info(self.ask(natnet.encode_connect(), MessageId.SERVERINFO))
+        hello = natnet.encode_connect(natnet_version=Version(4, 1))
+        return natnet.decode_server_info(self.ask(hello, MessageId.SERVERINFO))
 
     def recv_frames(self, count: int, timeout: float = 5.0) -> list[tuple[float, bytes]]:
         """``count`` frames received on the command socket (unicast)."""
