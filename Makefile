@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test lint bench soak clean
+.PHONY: setup run test test-px4 lint bench soak clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -20,6 +20,10 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# The real-PX4 tier: PX4 v1.16 SITL (PX4_SITL_DIR, else ../shared/px4-sitl) flown through the arena.
+test-px4: $(STAMP)
+	$(BIN)/python -m pytest -q -m px4 tests/px4
 
 lint: $(STAMP)
 	$(BIN)/ruff check arena_common services tests examples

@@ -2,11 +2,19 @@
 
 :func:`load` reads and validates a file into frozen value objects; every error names the file, the
 field and what was expected (``deploy/sim.toml: vehicles.d1.system_id: expected an integer in 1..250,
-got 0``).  ``deploy/sim.toml`` and ``deploy/lab.example.toml`` are the documented examples.
+got 0``).  ``deploy/sim.toml``, ``deploy/px4-sitl.toml`` and ``deploy/lab.example.toml`` are the documented
+examples.
+
+Each vehicle says what flies it (``autopilot``): ``"sim"`` (default; the arena's simulated autopilot, run
+by the host service ``sim``), ``"px4"`` (an external PX4: hardware, or a SITL started by hand; nothing is
+started for it) or ``"px4-sitl"`` with ``px4_instance = N`` (0..9; ``arena up`` starts PX4 SITL instance N
+and its truth bridge next to the vehicle's gateway; ``mavlink`` defaults to ``udpin:127.0.0.1:<14540+N>``
+and ``system_id`` to N+1, and must agree with them when given; ``px4_params`` adds boot parameters).
 """
 
 from __future__ import annotations
 
+import re
 import socket
 import tomllib
 from collections.abc import Mapping
@@ -23,6 +31,9 @@ UP_AXES = ("y", "z", "enu")
 MOCAP_SOURCES = ("natnet", "motioncapture", "csv")
 ZENOH_MODES = ("peer", "client", "router")
 DECIMATE_IN = ("downsampler", "transform")
+AUTOPILOTS = ("sim", "px4", "px4-sitl")
+PX4_SITL_MAX_INSTANCE = 9  # instance 10 would send its offboard link to 14550, the ground stations' port
+PX4_SITL_OFFBOARD_PORT = 14540  # + instance: where PX4 SITL sends its offboard link
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,7 +105,7 @@ class HostSpec:
 
 @dataclass(frozen=True, slots=True)
 class SimVehicleSpec:
-    """Settings of a simulated vehicle."""
+    """Settings of a simulated vehicle (``start`` and ``yaw_deg`` also place a PX4 SITL vehicle)."""
 
     start: tuple[float, float] = (0.0, 0.0)
     yaw_deg: float = 0.0
@@ -116,6 +127,22 @@ class VehicleSpec:
     gcs: str = ""
     signing_key_file: str = ""  # MAVLink 2 signing: a file holding the 32-byte secret key as 64 hex digits
     sim: SimVehicleSpec = field(default_factory=SimVehicleSpec)
+    # What flies it: "sim" (the arena's simulated autopilot, started by the ``sim`` service), "px4" (an
+    # external PX4: hardware, or a SITL started by hand; nothing is started for it) or "px4-sitl" (PX4
+    # SITL instance ``px4_instance``, started by ``arena up`` with its ground-truth bridge).
+    autopilot: str = "sim"
+    px4_instance: int | None = None
+    px4_params: Mapping[str, float] = field(default_factory=dict)  # PX4 SITL boot parameters
+
+    @property
+    def simulated(self) -> bool:
+        """True when the arena's simulated autopilot flies it."""
+        return self.autopilot == "sim"
+
+    @property
+    def px4_sitl(self) -> bool:
+        """True when ``arena up`` starts a PX4 SITL instance for it."""
+        return self.autopilot == "px4-sitl"
 
     def sim_mavlink(self) -> str:
         """The connection string the simulated autopilot uses: the mirror of the gateway's."""
@@ -233,6 +260,13 @@ def mirror_connection(conn: str) -> str:
     return f"{mirror[scheme]}:{rest}"
 
 
+def udp_listen_port(conn: str) -> int | None:
+    """The local UDP port a gateway binds for ``udpin:HOST:PORT`` (or ``udp:…``); None for other links."""
+    scheme, _, rest = conn.partition(":")
+    port = rest.rpartition(":")[2]
+    return int(port) if scheme in ("udpin", "udp") and port.isdigit() else None
+
+
 class _Reader:
     """Typed access to a TOML table that names the file and dotted field in every error."""
 
@@ -311,6 +345,62 @@ def _name(r: _Reader, key: str, value: str, what: str) -> str:
         raise ConfigError(f"{r.path}: {r.prefix + '.' if r.prefix else ''}{key}: {exc}") from None
 
 
+def _px4_params(r: _Reader) -> dict[str, float]:
+    table = r.get("px4_params", dict, {}, "a table of PX4 parameters (NAME = number)")
+    out: dict[str, float] = {}
+    for key, value in table.items():
+        if not re.fullmatch(r"[A-Z][A-Z0-9_]{0,15}", key):
+            raise r.fail("px4_params", "PX4 parameter names (capitals, digits, _; up to 16 characters)", key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise r.fail(f"px4_params.{key}", "a number", value)
+        out[key] = value
+    return out
+
+
+def _autopilot(r: _Reader) -> tuple[str, int | None, str | None, int | None]:
+    """``(autopilot, px4_instance, mavlink, system_id)``; a PX4 SITL vehicle's link and id follow from
+    its instance (and must agree with it when given)."""
+    autopilot = r.string("autopilot", "sim", AUTOPILOTS)
+    mav = r.get("mavlink", str, None, "a pymavlink connection string (udpin:HOST:PORT, tcp:…, /dev/ttyUSB0…)")
+    sysid = r.integer("system_id", 1, 1, 250) if "system_id" in r.data else None
+    if autopilot != "px4-sitl":
+        if "px4_instance" in r.data:
+            raise r.fail("px4_instance", f'no px4_instance unless autopilot = "px4-sitl" (got {autopilot!r})')
+        if "px4_params" in r.data:
+            raise r.fail("px4_params", f'no px4_params unless autopilot = "px4-sitl" (got {autopilot!r})')
+        return autopilot, None, mav, sysid
+    if "px4_instance" not in r.data:
+        raise r.fail(
+            "px4_instance",
+            f'the PX4 SITL instance number (0..{PX4_SITL_MAX_INSTANCE}) of a "px4-sitl" vehicle',
+        )
+    n = r.integer("px4_instance", 0, 0, PX4_SITL_MAX_INSTANCE)
+    port = PX4_SITL_OFFBOARD_PORT + n
+    expected = f"udpin:127.0.0.1:{port}"
+    if mav is None:
+        mav = expected
+    else:
+        scheme, _, rest = mav.partition(":")
+        host, _, port_s = rest.rpartition(":")
+        if (
+            scheme not in ("udpin", "udp")
+            or host not in ("127.0.0.1", "localhost", "0.0.0.0")
+            or port_s != str(port)
+        ):
+            raise r.fail(
+                "mavlink",
+                f"{expected} for PX4 SITL instance {n} (px4_instance; or leave mavlink out)",
+                mav,
+            )
+    if sysid is None:
+        sysid = n + 1
+    elif sysid != n + 1:
+        raise r.fail(
+            "system_id", f"{n + 1}, the MAV_SYS_ID of PX4 SITL instance {n} (or leave it out)", sysid
+        )
+    return autopilot, n, mav, sysid
+
+
 def _vehicle(r: _Reader, name: str) -> VehicleSpec:
     body = r.get("rigid_body", (str, int), name, "a rigid-body name or integer id")
     sim_r = r.table("sim")
@@ -320,16 +410,20 @@ def _vehicle(r: _Reader, name: str) -> VehicleSpec:
         mavlink=sim_r.string("mavlink", ""),
     )
     sim_r.done()
-    mav = r.get("mavlink", str, None, "a pymavlink connection string (udpin:HOST:PORT, tcp:…, /dev/ttyUSB0…)")
+    autopilot, instance, mav, sysid = _autopilot(r)
+    if autopilot != "sim" and sim.mavlink:
+        raise sim_r.fail(
+            "mavlink", f'no simulated side unless autopilot = "sim" (got {autopilot!r})', sim.mavlink
+        )
     if mav is None:
         raise r.fail("mavlink", "a pymavlink connection string (udpin:HOST:PORT, tcp:HOST:PORT, /dev/tty…)")
-    if "system_id" not in r.data:
+    if sysid is None:
         raise r.fail("system_id", "an integer in 1..250 (MAV_SYS_ID; never 0)")
     v = VehicleSpec(
         name=name,
         rigid_body=body,
         mavlink=mav,
-        system_id=r.integer("system_id", 1, 1, 250),
+        system_id=sysid,
         vision_rate=r.number("vision_rate", 50.0, 1.0, 400.0),
         max_pose_age=r.number("max_pose_age", 0.1, 0.001, 1.0),
         vision_message=r.string("vision_message", "odometry", ("odometry", "vision_position_estimate")),
@@ -337,6 +431,9 @@ def _vehicle(r: _Reader, name: str) -> VehicleSpec:
         gcs=r.string("gcs", ""),
         signing_key_file=r.string("signing_key_file", ""),
         sim=sim,
+        autopilot=autopilot,
+        px4_instance=instance,
+        px4_params=_px4_params(r) if autopilot == "px4-sitl" else {},
     )
     r.done()
     return v
@@ -407,9 +504,18 @@ def parse(data: Mapping[str, Any], path: str = "<config>") -> ArenaConfig:
     vs = root.table("vehicles")
     vehicles: dict[str, VehicleSpec] = {}
     ids: dict[int, str] = {}
+    instances: dict[int, str] = {}
     for vname in list(vs.data):
         _name(vs, vname, vname, "vehicle name")
         v = _vehicle(vs.table(vname), vname)
+        if v.px4_instance is not None:
+            if v.px4_instance in instances:
+                raise vs.fail(
+                    f"{vname}.px4_instance",
+                    f"a PX4 SITL instance not used by {instances[v.px4_instance]}",
+                    v.px4_instance,
+                )
+            instances[v.px4_instance] = vname
         if v.system_id in ids:
             raise vs.fail(f"{vname}.system_id", f"a system id not used by {ids[v.system_id]}", v.system_id)
         ids[v.system_id] = vname
@@ -434,11 +540,22 @@ def parse(data: Mapping[str, Any], path: str = "<config>") -> ArenaConfig:
                 'no "downsampler" while pipeline.decimate = "transform" (the transform decimates)',
                 list(host.vehicle_services),
             )
+        listening: dict[int, str] = {}
         for vname in host.vehicles:
             if vname not in vehicles:
                 raise h.fail(
                     "vehicles", f"names of configured vehicles ({', '.join(vehicles) or 'none'})", vname
                 )
+            port = udp_listen_port(vehicles[vname].mavlink)
+            if port is not None and port in listening:
+                raise h.fail(
+                    "vehicles",
+                    f"vehicles whose gateways listen on distinct UDP ports ({listening[port]} and {vname}"
+                    f" both use {port} on this host)",
+                    list(host.vehicles),
+                )
+            if port is not None:
+                listening[port] = vname
         h.done()
         hosts[hname] = host
     hs.done()

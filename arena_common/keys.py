@@ -49,7 +49,12 @@ KEYS: tuple[KeySpec, ...] = (
     KeySpec(
         "arena/<drone>/setpoint", "Setpoint", "stream", "Streamed offboard setpoints, each with a lease."
     ),
-    KeySpec("arena/<drone>/truth", "Pose", "stream", "Simulation only: a simulated vehicle's true pose."),
+    KeySpec(
+        "arena/<drone>/truth",
+        "Pose",
+        "stream",
+        "Simulation only: a simulated (or PX4 SITL) vehicle's true pose, for the Motive emulator.",
+    ),
     KeySpec("arena/estop", "Estop", "reliable", "Stop everything: land every vehicle (or kill)."),
     KeySpec("arena/sys/alive/<host>/<service>", "—", "liveliness", "Presence token of each running service."),
     KeySpec("arena/sys/stats/<host>/<service>", "Stats", "stream", "Counters of each service, every second."),

@@ -282,7 +282,9 @@ def param_name_from_field(field: str | bytes) -> str:
 _I: Final = MAV_PARAM_TYPE_INT32
 _F: Final = MAV_PARAM_TYPE_REAL32
 
-#: PX4 v1.14 defaults (name → (value, MAV_PARAM_TYPE)) of the parameters the arena reads or sets.
+#: PX4 v1.16 defaults (name → (value, MAV_PARAM_TYPE)) of the parameters the arena reads or sets, as the
+#: build's own metadata (parameters.json) gives them (checked by the tests when a build is at hand);
+#: SYS_AUTOSTART is the airframe's, not the metadata's 0.
 PX4_DEFAULTS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "EKF2_EV_CTRL": (0, _I),  # bitmask: 0 hor. pos, 1 vert. pos, 2 vel, 3 yaw
     "EKF2_HGT_REF": (1, _I),  # 0 baro, 1 GNSS, 2 range, 3 vision
@@ -296,8 +298,11 @@ PX4_DEFAULTS: Final[Mapping[str, tuple[ParamValue, int]]] = {
         _I,
     ),  # 0 Position, 1 Altitude, 2 Stabilized, 3 Return, 4 Land, 5 Hold, 6 Term., 7 Disarm
     "COM_OF_LOSS_T": (1.0, _F),  # s
-    "COM_RC_IN_MODE": (0, _I),  # 0 RC only, 1 joystick only, 2 fallback, 3 keep first, 4 stick input disabled
-    "COM_POSCTL_NAVL": (0, _I),
+    "COM_RC_IN_MODE": (3, _I),  # 0 RC only, 1 joystick only, 2 fallback, 3 keep first, 4 stick input disabled
+    "COM_POSCTL_NAVL": (0, _I),  # 0 Altitude, 1 Land (descend)
+    "EKF2_NOAID_TOUT": (5_000_000, _I),  # µs of inertial dead reckoning before position is invalid
+    "EKF2_EVP_NOISE": (0.1, _F),  # m
+    "EKF2_EVA_NOISE": (0.1, _F),  # rad
     "COM_DISARM_LAND": (2.0, _F),  # s
     "COM_DISARM_PRFLT": (10.0, _F),  # s
     "COM_LOW_BAT_ACT": (0, _I),  # 0 warning, 2 land, 3 return at critical / land at emergency
@@ -326,7 +331,12 @@ PX4_DEFAULTS: Final[Mapping[str, tuple[ParamValue, int]]] = {
 #:
 #: EKF2_EV_CTRL 15 fuses vision horizontal and vertical position, velocity (used only when the sender
 #: fills it) and yaw; 11 (no velocity) would also do. COM_LOW_BAT_ACT 2 and NAV_RCL_ACT 3 implement the
-#: arena's safety set-up (land at critical battery, land on RC loss).
+#: arena's safety set-up (land at critical battery, land on RC loss).  EKF2_NOAID_TOUT 1 s: when mocap
+#: stops, PX4 dead-reckons for this long before it declares its position invalid and fails safe (5 s by
+#: default: in a 7 × 4 m room the vehicle left it in 4 of 6 tries; with 1 s it moved 0.24–0.54 m);
+#: COM_POSCTL_NAVL 1 lands (descends) on position loss in Position mode too.  EKF2_EV_DELAY and the vision
+#: noise were chosen by measurement against PX4 SITL (docs/px4.md): the arena stamps the camera's
+#: mid-exposure time, which PX4 maps with TIMESYNC, so EKF2_EV_DELAY holds only what the stamps miss.
 ARENA_REQUIRED_PARAMS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "EKF2_EV_CTRL": (15, _I),
     "EKF2_HGT_REF": (3, _I),
@@ -334,6 +344,8 @@ ARENA_REQUIRED_PARAMS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "EKF2_MAG_TYPE": (5, _I),
     "EKF2_BARO_CTRL": (1, _I),
     "EKF2_EV_DELAY": (20.0, _F),
+    "EKF2_NOAID_TOUT": (1_000_000, _I),
+    "COM_POSCTL_NAVL": (1, _I),
     "COM_OBL_RC_ACT": (4, _I),
     "COM_OF_LOSS_T": (1.0, _F),
     "COM_RC_IN_MODE": (4, _I),

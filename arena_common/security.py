@@ -69,6 +69,8 @@ def owners(cfg: ArenaConfig) -> dict[str, set[str]]:
             if "sim" in h.services:
                 own(f"arena/{v}/truth", h.name)
         for v in h.vehicles:
+            if "gateway" in h.vehicle_services and cfg.vehicles[v].px4_sitl:
+                own(f"arena/{v}/truth", h.name)  # its PX4 SITL's truth bridge runs with its gateway
             if "downsampler" in h.vehicle_services:
                 own(f"arena/{v}/vision", h.name)
             if "gateway" in h.vehicle_services:

@@ -1,7 +1,8 @@
 """Run a host's share of the arena: one OS process per service, restarted when it dies, stopped together.
 
 :func:`plan` turns the config into the process table of one host (``hosts.<h>.services`` and, for each
-of ``hosts.<h>.vehicles``, its ``vehicle_services``); :class:`Supervisor` runs such a table::
+of ``hosts.<h>.vehicles``, its ``vehicle_services``, preceded for an ``autopilot = "px4-sitl"`` vehicle by
+its PX4 SITL autopilot and truth bridge); :class:`Supervisor` runs such a table::
 
     specs = plan(cfg, "ground")
     sup = Supervisor(specs)
@@ -41,7 +42,8 @@ from arena_common.bus import BusOptions
 from arena_common.config import ArenaConfig, HostSpec
 from arena_common.errors import ArenaError
 
-# Config service name → (process name, module) pairs; "sim" is the simulated world: two processes.
+# Config service name → (process name, module) pairs; "sim" is the simulated world: the simulated
+# autopilots of the ``autopilot = "sim"`` vehicles (none: not started) and the Motive emulator.
 SERVICE_PROCESSES: Mapping[str, tuple[tuple[str, str], ...]] = {
     "mocap": (("mocap", "services.mocap_ingest"),),
     "transform": (("transform", "services.frame_transform"),),
@@ -52,6 +54,12 @@ VEHICLE_PROCESSES: Mapping[str, str] = {
     "downsampler": "services.downsampler",
     "gateway": "services.mavlink_gateway",
 }
+# An ``autopilot = "px4-sitl"`` vehicle's autopilot and its ground-truth bridge: started on the host
+# that runs its gateway (PX4 SITL talks on loopback only), before the vehicle's own services.
+PX4_SITL_PROCESSES: tuple[tuple[str, str], ...] = (
+    ("px4_sitl", "services.px4_sitl"),
+    ("px4_truth", "services.px4_truth"),
+)
 ROUTER_MODULE = "arena_common.cli"
 SUPERVISOR_SERVICE = "supervisor"
 _PR_SET_PDEATHSIG = 1
@@ -189,9 +197,13 @@ def plan(
         specs.append(ProcessSpec("router", argv, ready_port=ready))
     options = host_options(cfg, h, options)
     for service in h.services:
-        for name, module in SERVICE_PROCESSES.get(service, ()):
+        for name, module in _service_processes(cfg, service):
             specs.append(ProcessSpec(name, (python, "-m", module, *common, *level, *_bus_args(options))))
     for vehicle in h.vehicles:
+        if cfg.vehicle(vehicle).px4_sitl and "gateway" in h.vehicle_services:
+            for name, module in PX4_SITL_PROCESSES:
+                argv = (python, "-m", module, *common, "--vehicle", vehicle, *level)
+                specs.append(ProcessSpec(f"{name}.{vehicle}", (*argv, *_bus_args(options))))
         for service in h.vehicle_services:
             argv = (python, "-m", VEHICLE_PROCESSES[service], *common, "--vehicle", vehicle, *level)
             specs.append(ProcessSpec(f"{service}.{vehicle}", (*argv, *_bus_args(options))))
@@ -206,15 +218,26 @@ def sim_world_plan(
     python: str = sys.executable,
     log_level: str | None = None,
 ) -> list[ProcessSpec]:
-    """The simulated world alone (simulated vehicles and the Motive emulator), whatever the host runs."""
+    """The simulated world alone (simulated vehicles and the Motive emulator), whatever the host runs.
+
+    PX4 SITL vehicles are not part of it: their autopilots start with their gateways (:func:`plan`).
+    """
     common = ["-c", str(Path(cfg.path).resolve())]
     if host:
         common += ["--host", host]
     level = ["--log-level", log_level] if log_level else []
     return [
         ProcessSpec(name, (python, "-m", module, *common, *level, *_bus_args(options)))
-        for name, module in SERVICE_PROCESSES["sim"]
+        for name, module in _service_processes(cfg, "sim")
     ]
+
+
+def _service_processes(cfg: ArenaConfig, service: str) -> tuple[tuple[str, str], ...]:
+    """The processes of a host service; "sim" without simulated vehicles is the Motive emulator alone."""
+    processes = SERVICE_PROCESSES.get(service, ())
+    if service == "sim" and not any(v.simulated for v in cfg.vehicles.values()):
+        processes = tuple(p for p in processes if p[0] != "sim_vehicle")
+    return processes
 
 
 # -- child process plumbing ------------------------------------------------------------------------------

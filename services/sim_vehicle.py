@@ -1,6 +1,6 @@
 """Simulated PX4 vehicles: the configured vehicles as simulated autopilots, their true poses on Zenoh.
 
-Each vehicle of the config (or each one named with ``--vehicle``) becomes a
+Each ``autopilot = "sim"`` vehicle of the config (or each one named with ``--vehicle``) becomes a
 :class:`~arena_common.sim_autopilot.SimAutopilot` on the mirror of its gateway's MAVLink connection
 (:meth:`~arena_common.config.VehicleSpec.sim_mavlink`), starting on the floor at ``sim.start`` heading
 ``sim.yaw_deg``, with system id ``system_id``. All of them run in one thread. Every physics tick (or at
@@ -43,10 +43,19 @@ PHYSICS_RATE = 250.0  # Hz, the simulated autopilots' physics tick
 
 
 def select_vehicles(cfg: ArenaConfig, names: Sequence[str] = ()) -> list[str]:
-    """The vehicles to simulate: those named (each must exist), else every vehicle of the config."""
-    if not names:
-        return list(cfg.vehicles)
-    return [cfg.vehicle(name).name for name in names]
+    """The vehicles to simulate: those named, else every ``autopilot = "sim"`` vehicle of the config.
+
+    :class:`ConfigError` for an unknown name, a vehicle another autopilot flies, or nothing to simulate.
+    """
+    chosen = [cfg.vehicle(n) for n in names] if names else [v for v in cfg.vehicles.values() if v.simulated]
+    for v in chosen:
+        if not v.simulated:
+            raise ConfigError(
+                f"{cfg.path}: vehicles.{v.name}.autopilot is {v.autopilot!r}: not simulated here"
+            )
+    if not chosen:
+        raise ConfigError(f'{cfg.path}: no vehicle has autopilot = "sim": nothing to simulate')
+    return [v.name for v in chosen]
 
 
 def build_autopilots(cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = ()) -> list[SimAutopilot]:

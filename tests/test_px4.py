@@ -14,6 +14,8 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink
 
 from arena_common import px4
+from arena_common.px4_metadata import load_parameters_json
+from arena_common.px4_sitl import build_missing_reason, find_build
 
 
 def test_custom_mode_layout_matches_px4() -> None:
@@ -116,7 +118,7 @@ def test_defaults_and_arena_values() -> None:
     assert d["EKF2_HGT_REF"] == (1, px4.MAV_PARAM_TYPE_INT32)
     assert d["EKF2_EV_DELAY"] == (0.0, px4.MAV_PARAM_TYPE_REAL32)
     assert d["EKF2_GPS_CTRL"][0] == 7 and d["EKF2_MAG_TYPE"][0] == 0 and d["EKF2_BARO_CTRL"][0] == 1
-    assert d["COM_OBL_RC_ACT"][0] == 0 and d["COM_OF_LOSS_T"][0] == 1.0 and d["COM_RC_IN_MODE"][0] == 0
+    assert d["COM_OBL_RC_ACT"][0] == 0 and d["COM_OF_LOSS_T"][0] == 1.0 and d["COM_RC_IN_MODE"][0] == 3
     assert d["NAV_RCL_ACT"][0] == 2 and d["MPC_LAND_SPEED"][0] == 0.7 and d["MIS_TAKEOFF_ALT"][0] == 2.5
     assert (d["BAT_LOW_THR"][0], d["BAT_CRIT_THR"][0], d["BAT_EMERGEN_THR"][0]) == (0.15, 0.07, 0.05)
     for name in ("COM_POSCTL_NAVL", "COM_LOW_BAT_ACT", "MAV_SYS_ID", "MPC_XY_VEL_MAX", "MPC_Z_VEL_MAX_UP"):
@@ -125,11 +127,28 @@ def test_defaults_and_arena_values() -> None:
     assert int(a["EKF2_EV_CTRL"][0]) & 0b1011 == 0b1011  # horizontal + vertical position and yaw
     assert a["EKF2_HGT_REF"][0] == 3 and a["EKF2_GPS_CTRL"][0] == 0 and a["EKF2_MAG_TYPE"][0] == 5
     assert a["COM_OBL_RC_ACT"][0] == px4.OBL_LAND and a["COM_RC_IN_MODE"][0] == 4
-    assert a["EKF2_EV_DELAY"] == (20.0, px4.MAV_PARAM_TYPE_REAL32)
+    assert a["EKF2_NOAID_TOUT"] == (1_000_000, px4.MAV_PARAM_TYPE_INT32)  # 1 s of dead reckoning
     for name, (_, ptype) in a.items():
         assert d[name][1] == ptype, name  # same type as the vehicle's own parameter
     for name in d:
         assert len(px4.param_name_bytes(name)) <= 16
+
+
+def test_defaults_are_the_real_px4_builds() -> None:
+    """PX4_DEFAULTS and the arena's values against the PX4 build's own metadata (parameters.json)."""
+    reason = build_missing_reason()
+    if reason is not None:
+        pytest.skip(reason)
+    path = find_build() / "parameters.json"
+    meta = load_parameters_json(path)
+    types = {"Int32": px4.MAV_PARAM_TYPE_INT32, "Float": px4.MAV_PARAM_TYPE_REAL32}
+    for name, (value, ptype) in px4.PX4_DEFAULTS.items():
+        assert name in meta, name
+        assert types[meta[name]["type"]] == ptype, name
+        if name != "SYS_AUTOSTART":  # the airframe's, not the metadata's
+            assert float(meta[name]["default"]) == pytest.approx(float(value)), name
+    for name in px4.ARENA_REQUIRED_PARAMS:
+        assert name in meta, name
 
 
 def test_type_masks() -> None:

@@ -134,10 +134,19 @@ def render_systemd(
             text = text.replace(k, v)
         return text
 
+    sitl = [v for v in h.vehicles if cfg.vehicle(v).px4_sitl and "gateway" in h.vehicle_services]
+    if sitl:
+        raise DeployError(
+            f'{cfg.path}: host {h.name!r} serves autopilot = "px4-sitl" vehicles ({", ".join(sitl)}): '
+            "PX4 SITL runs under `arena up`, not systemd"
+        )
     files: dict[str, str] = {}
     wants: list[str] = []
+    simulated = any(v.simulated for v in cfg.vehicles.values())
     for service in h.services:
         for unit in SERVICE_UNITS[service]:
+            if unit == "arena-sim-vehicle.service" and not simulated:
+                continue  # no autopilot = "sim" vehicle: the Motive emulator runs alone
             files[f"{UNIT_DIR}/{unit}"] = fill(unit)
             wants.append(unit)
     for service in h.vehicle_services if h.vehicles else ():

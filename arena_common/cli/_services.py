@@ -22,6 +22,8 @@ RUN = {
     "downsampler": ("services.downsampler", "Downsampler: arena/<drone>/pose → arena/<drone>/vision."),
     "gateway": ("services.mavlink_gateway", "MAVLink gateway of one vehicle: the bus ↔ its PX4."),
     "recorder": ("services.recorder", "Telemetry recorder: keys → MCAP files."),
+    "px4-sitl": ("services.px4_sitl", 'PX4 SITL autopilot of one autopilot = "px4-sitl" vehicle.'),
+    "px4-truth": ("services.px4_truth", "PX4 SITL ground truth → arena/<drone>/truth (Motive emulator)."),
 }
 SIM = {
     "vehicle": ("services.sim_vehicle", "Simulated PX4 vehicles speaking MAVLink 2."),

@@ -1,0 +1,200 @@
+"""PX4 SITL truth bridge: SIH's true pose (HIL_STATE_QUATERNION) → ``arena/<drone>/truth`` (Motive emulator).
+
+PX4 SITL instance *N* sends its simulator's ground truth to 127.0.0.1:19410+N — latitude, longitude
+(1e-7 °), altitude (mm) and the attitude quaternion, body FRD → NED — at 25 Hz; this service asks for
+``--rate`` (default 100 Hz) with SET_MESSAGE_INTERVAL and asks again whenever the rate falls (px4
+booted again).  Each sample becomes a :class:`~arena_common.wire.Pose` in the arena frame: the position
+relative to SIH's home (:func:`~arena_common.px4_sitl.sih_home`: the floor is z = 0), turned by the
+vehicle's ``sim.yaw_deg`` and moved to its ``sim.start``; the quaternion (already NED/FRD) turned by the
+same yaw.  The Motive emulator (``services.sim_mocap``) streams it as NatNet, so the arena's whole real
+pipeline (ingest → transform → downsampler → gateway) flies PX4 unchanged.
+
+The pose's time is its arrival (PX4 leaves ``time_usec`` at 0 on this link); positions are quantised
+by the message to ~1.1 cm north, ~0.75 cm east and 1 mm down.  Stats: ``in`` samples received, ``out`` poses
+published, ``requests`` rate requests sent.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+import typer
+from pymavlink import mavutil
+
+from arena_common import keys, wire
+from arena_common.bus import BusOptions
+from arena_common.config import ArenaConfig
+from arena_common.errors import ConfigError
+from arena_common.frames import quat_canonical, quat_from_yaw, quat_multiply, quat_normalize
+from arena_common.options import (
+    ConfigOpt,
+    ConnectOpt,
+    HostOpt,
+    ListenOpt,
+    LogOpt,
+    ModeOpt,
+    ZConfigOpt,
+    bus_options,
+    load_config,
+)
+from arena_common.px4_sitl import Px4SitlError, find_build, ports, sih_home
+from arena_common.service import running, setup_logging
+from services.px4_sitl import boot_params, sitl_vehicle
+
+SERVICE = "px4_truth"
+RATE = 100.0  # Hz asked of PX4 (its 25 Hz default is a coarse mocap)
+EARTH_RADIUS = 6371000.0  # m, the sphere PX4's map projection uses
+MSG_HIL_STATE_QUATERNION = 115
+CMD_SET_MESSAGE_INTERVAL = 511
+
+
+def geodetic_to_ned(
+    lat_deg: float, lon_deg: float, alt_m: float, home: Sequence[float]
+) -> tuple[float, float, float]:
+    """North, east, down [m] of a point from ``home`` (lat °, lon °, alt m): PX4's azimuthal equidistant
+    projection on a sphere (the inverse of how SIH makes latitude and longitude), written without the
+    cancellation of ``acos`` near zero."""
+    lat, lon = math.radians(lat_deg), math.radians(lon_deg)
+    lat0, lon0 = math.radians(home[0]), math.radians(home[1])
+    dlat, dlon = lat - lat0, lon - lon0
+    hav = math.sin(dlat / 2) ** 2 + math.cos(lat0) * math.cos(lat) * math.sin(dlon / 2) ** 2
+    c = 2.0 * math.atan2(math.sqrt(hav), math.sqrt(max(0.0, 1.0 - hav)))  # the central angle
+    k = c / math.sin(c) if c > 1e-12 else 1.0
+    # cos(lat0)·sin(lat) − sin(lat0)·cos(lat)·cos(dlon), rearranged so small offsets stay exact.
+    north = math.sin(dlat) + math.sin(lat0) * math.cos(lat) * 2.0 * math.sin(dlon / 2) ** 2
+    east = math.cos(lat) * math.sin(dlon)
+    return k * north * EARTH_RADIUS, k * east * EARTH_RADIUS, -(alt_m - home[2])
+
+
+@dataclass(frozen=True, slots=True)
+class TruthFrame:
+    """How SIH's world maps onto the arena: its home, and where and how the vehicle starts in the arena."""
+
+    home: tuple[float, float, float]  # lat °, lon °, ground altitude m (float32, as PX4 holds it)
+    start: tuple[float, float] = (0.0, 0.0)  # north, east in the arena [m]
+    yaw: float = 0.0  # rad, the arena heading of SIH's north
+
+    def pose(self, msg: Any, t_ns: int) -> wire.Pose:
+        """The arena pose of a HIL_STATE_QUATERNION message received at ``t_ns``."""
+        n, e, d = geodetic_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, self.home)
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        vn, ve, vd = msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01
+        q = quat_normalize(msg.attitude_quaternion)
+        if self.yaw:
+            q = quat_multiply(quat_from_yaw(self.yaw), q)
+        return wire.Pose(
+            t=t_ns,
+            p=(self.start[0] + c * n - s * e, self.start[1] + s * n + c * e, d),
+            q=quat_canonical(q),
+            ok=True,
+            v=(c * vn - s * ve, s * vn + c * ve, vd),
+            w=(float(msg.rollspeed), float(msg.pitchspeed), float(msg.yawspeed)),
+            vok=True,
+            tp=wire.now_ns(),
+        )
+
+
+def truth_frame(cfg: ArenaConfig, vehicle: str) -> TruthFrame:
+    """The :class:`TruthFrame` of a PX4 SITL vehicle: SIH's home from its boot parameters (else the
+    build's defaults), its arena start and heading from ``sim.start`` / ``sim.yaw_deg``."""
+    spec = sitl_vehicle(cfg, vehicle)
+    try:
+        build = find_build()
+    except Px4SitlError:
+        build = None  # the bridge can run without the build: SIH's documented defaults
+    home = sih_home(boot_params(cfg, spec), os.environ, build)
+    return TruthFrame(home, spec.sim.start, math.radians(spec.sim.yaw_deg))
+
+
+def main(
+    cfg: ArenaConfig,
+    options: BusOptions | None = None,
+    *,
+    vehicle: str,
+    host: str | None = None,
+    stop: threading.Event | None = None,
+    rate: float = RATE,
+) -> None:
+    """Bridge ``vehicle``'s SIH ground truth to ``arena/<vehicle>/truth`` until ``stop`` is set."""
+    if not 0 < rate <= 250:
+        raise ConfigError(f"truth rate must be in (0, 250] Hz (SIH runs at 250 Hz), got {rate}")
+    spec = sitl_vehicle(cfg, vehicle)
+    assert spec.px4_instance is not None
+    frame = truth_frame(cfg, vehicle)
+    port = ports(spec.px4_instance)
+    try:
+        conn = mavutil.mavlink_connection(
+            f"udpin:127.0.0.1:{port.truth}", source_system=255, source_component=190, dialect="common"
+        )
+    except OSError as exc:
+        raise ConfigError(f"cannot listen on udp 127.0.0.1:{port.truth}: {exc.strerror or exc}") from None
+    with running(SERVICE, cfg, options, vehicle=vehicle, host=host, stop=stop) as svc:
+        pub = svc.bus.stream_publisher(keys.truth(vehicle), wire.Pose)
+        svc.log.info(
+            "udp 127.0.0.1:%d (PX4 SITL instance %d) → %s at %g Hz; home %.7f° %.7f° %.3f m, "
+            "start %s, yaw %.1f°",
+            port.truth,
+            port.instance,
+            keys.truth(vehicle),
+            rate,
+            *frame.home,
+            frame.start,
+            math.degrees(frame.yaw),
+        )
+        window_start, in_window, last_request = time.monotonic(), 0, -math.inf
+        try:
+            while not svc.stopped:
+                msg = conn.recv_match(type="HIL_STATE_QUATERNION", blocking=True, timeout=0.2)
+                now = time.monotonic()
+                if msg is not None:
+                    svc.stats.count("in")
+                    in_window += 1
+                    try:
+                        pub.put(frame.pose(msg, wire.now_ns()))
+                        svc.stats.count("out")
+                    except (ValueError, ZeroDivisionError) as exc:
+                        svc.reject("bad_sample", str(exc))
+                if now - window_start >= 1.0:
+                    slow = 0 < in_window < 0.8 * rate * (now - window_start)
+                    if slow and now - last_request >= 2.0:
+                        # Asked only once PX4 has been heard: the request goes back to where it sends from.
+                        conn.mav.command_long_send(
+                            spec.system_id, 1, CMD_SET_MESSAGE_INTERVAL, 0,
+                            MSG_HIL_STATE_QUATERNION, 1e6 / rate, 0, 0, 0, 0, 0,
+                        )  # fmt: skip
+                        svc.stats.count("requests")
+                        last_request = now
+                    window_start, in_window = now, 0
+        finally:
+            conn.close()
+
+
+def cli(
+    vehicle: Annotated[str, typer.Option("--vehicle", "-v", help="The PX4 SITL vehicle.")],
+    rate: Annotated[float, typer.Option("--rate", help="Truth samples per second asked of PX4.")] = RATE,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+    host: HostOpt = None,
+    log_level: LogOpt = "INFO",
+) -> None:
+    """SIH's ground truth of one PX4 SITL vehicle → arena/<drone>/truth (for the Motive emulator)."""
+    setup_logging(log_level)
+    cfg = load_config(config)
+    try:
+        main(cfg, bus_options(mode, connect, listen, zconfig), vehicle=vehicle, host=host, rate=rate)
+    except (ConfigError, Px4SitlError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+if __name__ == "__main__":
+    typer.run(cli)

@@ -1,0 +1,360 @@
+"""The real-PX4 tier's machinery: PX4 SITL instances and the arena's unchanged services in front of them.
+
+:class:`Px4Stack` runs, for each vehicle of a private config (``autopilot = "px4-sitl"``), a PX4 SITL
+instance (in this process: :class:`~arena_common.px4_sitl.Px4Sitl`, so a test can read PX4's own view
+with ``px4-listener`` or boot it again) and, as separate processes that a test can stop and start, the
+Motive emulator, mocap ingest, frame transform, and per vehicle its truth bridge, downsampler and
+gateway — the pipeline ``arena up`` runs, one process each.  Every output goes to a log file under the
+test's temporary directory.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from arena_common import Arena, keys, wire
+from arena_common import config as config_mod
+from arena_common.config import ArenaConfig
+from arena_common.frames import quat_yaw, wrap_angle
+from arena_common.px4_sitl import MAX_INSTANCE, Px4Sitl, instance_busy
+from services.px4_sitl import boot_params
+from tests.conftest import REPO, free_port
+
+HOST = "test"
+SHARED = ("sim_mocap", "mocap_ingest", "frame_transform")  # the room and the ground computer
+PER_VEHICLE = ("px4_truth", "downsampler", "mavlink_gateway")
+
+
+class InstancePool:
+    """Distinct PX4 SITL instance numbers (0..9) for the tests of one session, skipping busy ones.
+
+    Numbers are handed out in turn, so consecutive tests use different instances (no stale socket or
+    port of a previous test in the way); one held by this session or by any px4 of the machine (its lock
+    file held, e.g. a colleague's) is never handed out.
+    """
+
+    def __init__(self, numbers: Sequence[int] = tuple(range(MAX_INSTANCE + 1))) -> None:
+        self.numbers = tuple(numbers)
+        self.held: set[int] = set()
+        self._next = 0
+        self._lock = threading.Lock()
+
+    def take(self) -> int:
+        """A free instance number; :class:`RuntimeError` when all ten are busy."""
+        with self._lock:
+            for k in range(len(self.numbers)):
+                n = self.numbers[(self._next + k) % len(self.numbers)]
+                if n not in self.held and not instance_busy(n):
+                    self.held.add(n)
+                    self._next = (self._next + k + 1) % len(self.numbers)
+                    return n
+        raise RuntimeError(f"every PX4 SITL instance of {self.numbers} is in use on this machine")
+
+    def give_back(self, n: int) -> None:
+        """Return ``n`` to the pool."""
+        with self._lock:
+            self.held.discard(n)
+
+
+def write_px4_config(
+    path: Path,
+    router_endpoint: str,
+    instances: Mapping[str, int],
+    *,
+    preset: str = "arena",
+    px4_params: Mapping[str, Mapping[str, float]] | None = None,
+    starts: Mapping[str, tuple[float, float]] | None = None,
+    require_setup: bool = True,
+    services: Sequence[str] = ("sim", "mocap", "transform"),
+    extra: str = "",
+) -> ArenaConfig:
+    """Write (and load) a config of PX4 SITL vehicles whose every port is private to this test.
+
+    ``instances``: vehicle name → PX4 SITL instance; ``preset``: ``sim.px4_params`` ("arena" boots PX4
+    set up for the arena, "px4" with its defaults); ``px4_params``: per-vehicle boot parameters;
+    ``require_setup`` false lets the gateways arm a PX4 whose parameters differ from the arena's.
+    """
+    cmd_port, data_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+    lines = [
+        "[arena]",
+        'name = "px4-test"',
+        "[mocap]",
+        'server = "127.0.0.1"',
+        'interface = "127.0.0.1"',
+        "multicast = false",
+        f"command_port = {cmd_port}",
+        f"data_port = {data_port}",
+        "[zenoh]",
+        'mode = "peer"',
+        f'connect = ["{router_endpoint}"]',
+        f'router_listen = ["{router_endpoint}"]',
+        f"[hosts.{HOST}]",
+        "services = [" + ", ".join(f'"{x}"' for x in services) + "]",
+        "vehicles = [" + ", ".join(f'"{v}"' for v in instances) + "]",
+        "[sim]",
+        f'px4_params = "{preset}"',
+    ]
+    for index, (name, n) in enumerate(instances.items()):
+        north, east = (starts or {}).get(name, (index * 1.0 - 1.0, 0.0))
+        lines += [
+            f"[vehicles.{name}]",
+            'autopilot = "px4-sitl"',
+            f"px4_instance = {n}",
+            f'rigid_body = "{name}"',
+            f"sim = {{ start = [{north}, {east}] }}",
+            f"require_setup = {str(require_setup).lower()}",
+        ]
+        params = (px4_params or {}).get(name)
+        if params:
+            lines.append("px4_params = { " + ", ".join(f"{k} = {v!r}" for k, v in params.items()) + " }")
+    lines.append(extra)
+    path.write_text("\n".join(lines) + "\n")
+    return config_mod.load(path)
+
+
+@dataclass
+class _Proc:
+    argv: list[str]
+    log: Path
+    proc: subprocess.Popen[bytes] | None = None
+
+
+@dataclass
+class Px4Stack:
+    """PX4 SITL instances and the arena's services of one config; :meth:`close` stops everything."""
+
+    cfg: ArenaConfig
+    logs: Path
+    px4: dict[str, Px4Sitl] = field(default_factory=dict)
+    procs: dict[str, _Proc] = field(default_factory=dict)
+    boot_s: dict[str, float] = field(default_factory=dict)
+    _files: list[IO[str]] = field(default_factory=list)
+
+    # -- PX4 ----------------------------------------------------------------------------------------------
+    def start_px4(self, vehicle: str) -> float:
+        """Boot ``vehicle``'s PX4 SITL instance (output in ``px4.<vehicle>.log``); its boot time [s]."""
+        spec = self.cfg.vehicle(vehicle)
+        assert spec.px4_instance is not None, vehicle
+        out = open(self.logs / f"px4.{vehicle}.log", "a", encoding="utf-8")  # noqa: SIM115 - closed in close()
+        self._files.append(out)
+
+        def write(line: str) -> None:
+            out.write(f"{time.strftime('%H:%M:%S')} {line}\n")
+            out.flush()
+
+        px4 = Px4Sitl(spec.px4_instance, params=boot_params(self.cfg, spec), output=write)
+        self.px4[vehicle] = px4
+        px4.start()
+        self.boot_s[vehicle] = px4.wait_ready()
+        return self.boot_s[vehicle]
+
+    # -- services -----------------------------------------------------------------------------------------
+    def _argv(self, module: str, vehicle: str | None) -> list[str]:
+        argv = [sys.executable, "-m", f"services.{module}", "-c", self.cfg.path, "--host", HOST]
+        return argv + (["--vehicle", vehicle] if vehicle else [])
+
+    def start(self, module: str, vehicle: str | None = None) -> subprocess.Popen[bytes]:
+        """Start (or start again) service ``module`` (``sim_mocap``, ``mavlink_gateway``…) as a process."""
+        name = f"{module}.{vehicle}" if vehicle else module
+        p = self.procs.get(name) or _Proc(self._argv(module, vehicle), self.logs / f"{name}.log")
+        self.procs[name] = p
+        if p.proc is not None and p.proc.poll() is None:
+            return p.proc
+        with open(p.log, "ab") as log:
+            p.proc = subprocess.Popen(
+                p.argv,
+                cwd=REPO,
+                env={**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"},
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        return p.proc
+
+    def stop(self, name: str, timeout: float = 15.0) -> int | None:
+        """Stop process ``name`` (``sim_mocap``, ``mavlink_gateway.d1``…): SIGTERM, then SIGKILL."""
+        p = self.procs.get(name)
+        if p is None or p.proc is None:
+            return None
+        if p.proc.poll() is None:
+            p.proc.terminate()
+            try:
+                p.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                p.proc.kill()
+                p.proc.wait(5)
+        return p.proc.returncode
+
+    def start_all(self) -> None:
+        """Every PX4 instance first (they boot in about a second), then the pipeline."""
+        for vehicle in self.cfg.vehicles:
+            self.start_px4(vehicle)
+        for module in SHARED:
+            self.start(module)
+        for vehicle in self.cfg.vehicles:
+            for module in PER_VEHICLE:
+                self.start(module, vehicle)
+
+    def dead(self) -> list[str]:
+        """Processes that exited by themselves (a crash), with their status."""
+        return [
+            f"{name} (status {p.proc.returncode})"
+            for name, p in self.procs.items()
+            if p.proc is not None and p.proc.poll() is not None
+        ]
+
+    def tail(self, name: str, n: int = 30) -> str:
+        """The last ``n`` lines of a log (``px4.d1``, ``mavlink_gateway.d1``…)."""
+        try:
+            lines = (self.logs / f"{name}.log").read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return "\n".join(lines[-n:])
+
+    def close(self) -> None:
+        """Stop the services (gateways first), then PX4; close the logs."""
+        for name in reversed(list(self.procs)):
+            if self.procs[name].proc is not None and self.procs[name].proc.poll() is None:  # type: ignore[union-attr]
+                self.procs[name].proc.terminate()  # type: ignore[union-attr]
+        for name in reversed(list(self.procs)):
+            self.stop(name)
+        for px4 in self.px4.values():
+            px4.stop()
+        for f in self._files:
+            f.close()
+
+
+@contextmanager
+def px4_stack(cfg: ArenaConfig, logs: Path) -> Iterator[Px4Stack]:
+    """A started :class:`Px4Stack`; everything stopped at the end, whatever happened."""
+    stack = Px4Stack(cfg, logs)
+    try:
+        stack.start_all()
+        yield stack
+    finally:
+        stack.close()
+
+
+# -- estimate versus truth ------------------------------------------------------------------------------
+
+
+@dataclass
+class ErrorFigure:
+    """Estimate-versus-truth error over one phase of a flight [m, °]."""
+
+    phase: str
+    n: int
+    horizontal_p50: float
+    horizontal_max: float
+    vertical_p50: float
+    vertical_max: float
+    yaw_max_deg: float
+
+    def __str__(self) -> str:
+        return (
+            f"{self.phase:<8} n={self.n:<5} horizontal p50 {self.horizontal_p50 * 100:5.1f} cm max "
+            f"{self.horizontal_max * 100:5.1f} cm · vertical p50 {self.vertical_p50 * 100:5.1f} cm max "
+            f"{self.vertical_max * 100:5.1f} cm · yaw max {self.yaw_max_deg:4.1f}°"
+        )
+
+
+class FlightRecord:
+    """Every true pose (``arena/<d>/truth``) and autopilot state (``arena/<d>/state``) of a flight, with
+    named phases; compares PX4's estimate with the truth at each state (truth interpolated in time)."""
+
+    def __init__(self, arena: Arena, vehicle: str) -> None:
+        self.vehicle = vehicle
+        self._truth = arena.bus.subscribe(keys.truth(vehicle), capacity=500_000, ring=False)
+        self._state = arena.bus.subscribe(keys.state(vehicle), capacity=500_000, ring=False)
+        self.truth: list[wire.Pose] = []
+        self.states: list[wire.State] = []
+        self.phases: list[tuple[str, int]] = []
+
+    def phase(self, name: str) -> None:
+        """A phase starts now (it lasts until the next one)."""
+        self.phases.append((name, wire.now_ns()))
+
+    def collect(self) -> None:
+        """Take what arrived so far."""
+        self.truth += [i.payload for i in self._truth.channel.drain() if isinstance(i.payload, wire.Pose)]
+        self.states += [i.payload for i in self._state.channel.drain() if isinstance(i.payload, wire.State)]
+
+    def latest_truth(self) -> wire.Pose | None:
+        """The last true pose received."""
+        self.collect()
+        return self.truth[-1] if self.truth else None
+
+    def _pairs(self, t0: int, t1: int, lag_ns: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(estimate positions, true positions, yaw errors [rad]) of the states stamped in [t0, t1)."""
+        tt = np.array([p.t for p in self.truth], dtype=np.int64)
+        tp = np.array([p.p for p in self.truth])
+        ty = np.unwrap([quat_yaw(p.q) for p in self.truth])
+        states = [
+            s for s in self.states if t0 <= s.t < t1 and s.p is not None and tt[0] <= s.t - lag_ns <= tt[-1]
+        ]
+        if not states:
+            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+        ts = np.array([s.t - lag_ns for s in states], dtype=np.int64)
+        truth = np.stack([np.interp(ts, tt, tp[:, k]) for k in range(3)], axis=1)
+        est = np.array([s.p for s in states])
+        yaw_err = np.array(
+            [
+                wrap_angle(quat_yaw(s.q) - y) if s.q is not None else 0.0
+                for s, y in zip(states, np.interp(ts, tt, ty), strict=True)
+            ]
+        )
+        return est, truth, yaw_err
+
+    def figure(self, phase: str) -> ErrorFigure:
+        """The error figure of one phase (by name)."""
+        self.collect()
+        names = [n for n, _ in self.phases]
+        i = names.index(phase)
+        t0 = self.phases[i][1]
+        t1 = self.phases[i + 1][1] if i + 1 < len(self.phases) else wire.now_ns()
+        est, truth, yaw = self._pairs(t0, t1)
+        if len(est) == 0:
+            return ErrorFigure(phase, 0, math.nan, math.nan, math.nan, math.nan, math.nan)
+        h = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
+        v = np.abs(est[:, 2] - truth[:, 2])
+        return ErrorFigure(
+            phase, len(h), float(np.median(h)), float(h.max()), float(np.median(v)), float(v.max()),
+            float(np.degrees(np.abs(yaw).max())),
+        )  # fmt: skip
+
+    def lag(self, max_ms: int = 600, step_ms: int = 10) -> tuple[float, float]:
+        """(lag [s], mean 3-D error at that lag [m]): how far PX4's estimate trails the truth, the shift
+        that best explains it, over the whole record."""
+        self.collect()
+        t0, t1 = self.phases[0][1], wire.now_ns()
+        best = (0.0, math.inf)
+        for ms in range(0, max_ms + 1, step_ms):
+            est, truth, _ = self._pairs(t0, t1, ms * 1_000_000)
+            if len(est):
+                err = float(np.mean(np.linalg.norm(est - truth, axis=1)))
+                if err < best[1]:
+                    best = (ms / 1000.0, err)
+        return best
+
+    def excursion(self, phase: str, target: Sequence[float]) -> tuple[float, float]:
+        """(median, max) distance [m] of the true position from ``target`` during ``phase``."""
+        self.collect()
+        names = [n for n, _ in self.phases]
+        i = names.index(phase)
+        t0 = self.phases[i][1]
+        t1 = self.phases[i + 1][1] if i + 1 < len(self.phases) else wire.now_ns()
+        d = [math.dist(p.p, target) for p in self.truth if t0 <= p.t < t1]
+        return (float(np.median(d)), max(d)) if d else (math.nan, math.nan)
