@@ -156,6 +156,23 @@ def _transform(scale: float) -> dict[str, float]:
     return out
 
 
+# µs per (encode, decode) of the wire before it moved to msgspec Structs (the hand-written dataclass codec
+# of commit ce0ffc3), measured by this same loop on the 2-core development machine just before the change;
+# ``arena bench`` lists them under today's figures for comparison (same bytes).
+WIRE_BEFORE_MSGSPEC_US: dict[str, tuple[float, float]] = {
+    "MocapPose": (2.24, 6.87),
+    "Pose": (2.06, 6.02),
+    "State": (3.37, 10.58),
+    "Telemetry": (1.21, 3.86),
+    "Event": (1.19, 3.89),
+    "Command": (1.34, 3.96),
+    "CommandResult": (1.13, 3.59),
+    "Setpoint": (1.33, 3.45),
+    "Estop": (1.03, 2.46),
+    "Stats": (2.25, 9.02),
+}
+
+
 def _wire(scale: float) -> dict[str, dict[str, float]]:
     out: dict[str, dict[str, float]] = {}
     n = int(20_000 * scale)
@@ -168,6 +185,13 @@ def _wire(scale: float) -> dict[str, dict[str, float]]:
             "encode": per_call_us(value.encode, n),
             "decode": per_call_us(partial(cls.decode, raw, key), n),
         }
+        if name in WIRE_BEFORE_MSGSPEC_US:
+            encode, decode = WIRE_BEFORE_MSGSPEC_US[name]
+            out[f"{name} before msgspec (recorded)"] = {
+                "bytes": float(len(raw)),
+                "encode": encode,
+                "decode": decode,
+            }
     return out
 
 

@@ -1,33 +1,90 @@
 """The wire contract: typed payloads for every key, encoded as msgpack maps with short field names.
 
-Every payload is a frozen dataclass whose fields carry their wire name, kind, unit and range.  The
-same metadata drives encoding, validated decoding and the JSON Schemas in ``docs/schemas/``.  SI units
-everywhere; times are integer nanoseconds since the Unix epoch (``t`` = when it was measured or
-happened, ``tp`` = when it was published).  The Zenoh encoding names the schema and its version:
+Every payload is a frozen :class:`msgspec.Struct`. Each field's annotation says everything about it:
+its type (msgspec decodes and validates it), its range, and its description and unit
+(``Annotated[int, _int("Measurement time", unit="ns")]``). The field names are the wire names. The
+same annotations drive encoding, validated decoding, the JSON Schemas in ``docs/schemas/`` and
+``docs/wire.md``. What a type cannot say (the names a string may take, unit quaternions, rules
+between fields) is :meth:`Payload.check`, run on every decode.
+
+SI units everywhere; times are integer nanoseconds since the Unix epoch (``t`` = when it was measured
+or happened, ``tp`` = when it was published). The Zenoh encoding names the schema and its version:
 ``application/msgpack;arena.Pose/1``.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import itertools
 import math
+import re
+import sys
 import time
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, TypeVar, dataclass_transform
+from collections.abc import Mapping
+from typing import Annotated, Any, ClassVar, TypeVar
 
-import msgpack
+import msgspec
+from msgspec import Meta
 
 from arena_common import keys
 from arena_common.errors import InvalidName, PayloadError
 
 ENCODING_PREFIX = "application/msgpack;"
-_MAX_INT = 2**63 - 1
+_MAX_INT = 2**63 - 1  # int fields are int64 (a msgpack uint64 above this is refused)
+_MAX_FLOAT = sys.float_info.max  # float fields are finite: NaN and ±inf fail ``ge``/``le``
 
 
-@dataclass(frozen=True, slots=True)
+def now_ns() -> int:
+    """Wall-clock time in integer nanoseconds, the arena's common time base."""
+    return time.time_ns()
+
+
+# -- field types and their metadata --------------------------------------------------------------------
+
+F64 = Annotated[float, Meta(ge=-_MAX_FLOAT, le=_MAX_FLOAT)]  # a finite float64
+Vec3 = tuple[F64, F64, F64]
+Quat = tuple[F64, F64, F64, F64]
+Str = Annotated[str, Meta(max_length=4096)]
+Strs = Annotated[tuple[str, ...], Meta(max_length=256)]
+Map = dict[str, Any]
+
+
+def _int(doc: str, *, unit: str = "", lo: int = -_MAX_INT, hi: int = _MAX_INT) -> Meta:
+    """An integer field: int64, or ``lo``…``hi``."""
+    return Meta(ge=lo, le=hi, description=doc, extra={"unit": unit})
+
+
+def _float(
+    doc: str, *, unit: str = "", lo: float = -_MAX_FLOAT, hi: float = _MAX_FLOAT, nan_ok: bool = False
+) -> Meta:
+    """A float64 field: finite, or ``lo``…``hi``; ``nan_ok`` lets NaN (= unknown) through, not ±inf."""
+    if nan_ok:
+        return Meta(description=doc, extra={"unit": unit, "nan_ok": True})
+    return Meta(ge=lo, le=hi, description=doc, extra={"unit": unit})
+
+
+def _doc(doc: str, *, unit: str = "", choices: tuple[str, ...] = ()) -> Meta:
+    """Any other field: its description, unit, and for a string the names it may take."""
+    return Meta(description=doc, extra={"unit": unit, "choices": choices})
+
+
+def _always(value: Any) -> Any:
+    """A field default that still travels when the field holds it.
+
+    Payloads set ``omit_defaults`` so that an optional field (default ``None``) is left out of the map
+    while ``None``; every other field is always sent, as the golden vectors say. msgspec leaves out a
+    value only when it *is* the default object or an empty ``dict``/``list``/``set`` made by that type,
+    so a default made by any other factory is never left out.
+    """
+    if isinstance(value, dict):
+        return msgspec.field(default_factory=value.copy)
+    return msgspec.field(default_factory=itertools.repeat(value).__next__)
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
 class Spec:
-    """How one field travels: its short wire name, kind, unit, range and description."""
+    """How one field travels, read from its annotation: wire name, kind, unit, range and description."""
 
     wire: str
     kind: str  # int, float, bool, str, vec3, quat, map, strs
@@ -38,231 +95,215 @@ class Spec:
     optional: bool = False
     nan_ok: bool = False
     choices: tuple[str, ...] = ()
+    required: bool = False
 
 
-def _f(wire: str, kind: str, doc: str, *, default: Any = dataclasses.MISSING, **kw: Any) -> Any:
-    spec = Spec(wire, kind, doc, **kw)
-    if default is dataclasses.MISSING:
-        return field(metadata={"wire": spec})
-    if isinstance(default, (dict, list)):
-        return field(default_factory=lambda: type(default)(default), metadata={"wire": spec})
-    return field(default=default, metadata={"wire": spec})
+_KINDS: dict[type, str] = {
+    msgspec.inspect.IntType: "int",
+    msgspec.inspect.FloatType: "float",
+    msgspec.inspect.BoolType: "bool",
+    msgspec.inspect.StrType: "str",
+    msgspec.inspect.VarTupleType: "strs",
+    msgspec.inspect.DictType: "map",
+}
 
 
-def now_ns() -> int:
-    """Wall-clock time in integer nanoseconds, the arena's common time base."""
-    return time.time_ns()
+def _spec(cls: type, field: msgspec.inspect.Field) -> Spec:
+    """A field's spec from msgspec's view of ``Annotated[X, _int/_float/_doc(…)]`` (or that ``| None``)."""
+    t, optional = field.type, False
+    if isinstance(t, msgspec.inspect.UnionType):
+        (t,) = [m for m in t.types if not isinstance(m, msgspec.inspect.NoneType)]
+        optional = True
+    meta = t if isinstance(t, msgspec.inspect.Metadata) else None
+    doc: str = (meta.extra_json_schema or {}).get("description", "") if meta else ""
+    if meta is None or not doc:
+        raise TypeError(f"{cls.__name__}.{field.name}: annotate it with _int, _float or _doc")
+    extra, t = meta.extra or {}, meta.type
+    if isinstance(t, msgspec.inspect.TupleType):
+        kind = {3: "vec3", 4: "quat"}[len(t.item_types)]
+    else:
+        kind = _KINDS[type(t)]
+    lo = getattr(t, "ge", None)  # int64 and finite-float bounds are the kind's, not a range
+    hi = getattr(t, "le", None)
+    return Spec(
+        wire=field.encode_name,
+        kind=kind,
+        doc=doc,
+        unit=extra.get("unit", ""),
+        lo=None if lo in (-_MAX_INT, -_MAX_FLOAT) else lo,
+        hi=None if hi in (_MAX_INT, _MAX_FLOAT) else hi,
+        optional=optional,
+        nan_ok=extra.get("nan_ok", False),
+        choices=extra.get("choices", ()),
+        required=field.required,
+    )
 
 
-Vec3 = tuple[float, float, float]
-Quat = tuple[float, float, float, float]
+# -- the payload base ----------------------------------------------------------------------------------
+
 T = TypeVar("T", bound="Payload")
 
 
-class Payload:
-    """Base of every wire type. Subclasses are frozen dataclasses with ``SCHEMA`` and ``VERSION``."""
+class Payload(msgspec.Struct, frozen=True, omit_defaults=True):
+    """Base of every wire type: a frozen Struct with ``SCHEMA``, ``VERSION`` and ``DOC``."""
 
     SCHEMA: ClassVar[str]
     VERSION: ClassVar[int] = 1
     DOC: ClassVar[str] = ""
     _specs: ClassVar[tuple[tuple[str, Spec], ...]]
-    _encode_plan: ClassVar[tuple[tuple[str, str, bool], ...]]
-    _decode_plan: ClassVar[tuple[tuple[str, Spec, Callable[[Any], Any]], ...]]
+    _by_wire: ClassVar[dict[str, Spec]]
+    _choices: ClassVar[tuple[tuple[str, frozenset[str], str], ...]]
+    _nan_ok: ClassVar[tuple[str, ...]]
+    _decoder: ClassVar[msgspec.msgpack.Decoder[Any]]
 
     @classmethod
     def encoding(cls) -> str:
         """The Zenoh encoding string, e.g. ``application/msgpack;arena.Pose/1``."""
         return f"{ENCODING_PREFIX}arena.{cls.SCHEMA}/{cls.VERSION}"
 
-    def to_dict(self) -> dict[str, Any]:
-        """The wire map (short field names)."""
-        out: dict[str, Any] = {}
-        for name, spec in self._specs:
-            value = getattr(self, name)
-            if value is None and spec.optional:
-                continue
-            if spec.kind in ("vec3", "quat", "strs"):
-                value = list(value)
-            out[spec.wire] = value
-        return out
-
     def encode(self) -> bytes:
-        """msgpack bytes of :meth:`to_dict` (msgpack packs the tuples as arrays itself)."""
-        out: dict[str, Any] = {}
-        for name, wire_name, optional in self._encode_plan:
-            value = getattr(self, name)
-            if value is None and optional:
-                continue
-            out[wire_name] = value
-        return msgpack.packb(out, use_bin_type=True)
+        """The msgpack bytes."""
+        raw = _ENCODER.encode(self)
+        if raw[0] == 0xDE and raw[1] == 0 and raw[2] < 16:
+            # msgspec sizes the map header by how many fields the Struct has (a State has 21); with
+            # optional fields left out 15 or fewer may remain, which msgpack writes as a fixmap.
+            return bytes((0x80 | raw[2],)) + raw[3:]
+        return raw
+
+    def to_dict(self) -> dict[str, Any]:
+        """The wire map (short field names, arrays as lists), exactly as a receiver decodes it."""
+        data: dict[str, Any] = msgspec.msgpack.decode(self.encode())
+        return data
 
     @classmethod
-    def from_dict(cls: type[T], data: Any, key: str = "") -> T:
-        """Validate a wire map and build the payload; raise :class:`PayloadError` naming the field."""
-        if not isinstance(data, Mapping):
-            raise PayloadError(f"expected a map, got {type(data).__name__}", key=key, type_name=cls.SCHEMA)
-        kwargs: dict[str, Any] = {}
-        for name, spec, fast in cls._decode_plan:
-            value = data.get(spec.wire, _ABSENT)
-            if value is _ABSENT:
-                if spec.optional:
-                    continue
-                default = _default_of(cls, name)
-                if default is dataclasses.MISSING:
-                    raise PayloadError("missing field", key=key, type_name=cls.SCHEMA, field=spec.wire)
-                continue
-            # The fast check accepts only plain well-formed values; anything else takes the full check,
-            # which converts or names what is wrong.
-            checked = fast(value)
-            kwargs[name] = _check(spec, value, key, cls.SCHEMA) if checked is _ABSENT else checked
+    def decode(cls: type[T], raw: bytes, key: str = "") -> T:
+        """Decode and validate msgpack bytes of this type; raise :class:`PayloadError` naming the field."""
         try:
-            obj = cls(**kwargs)
-        except (TypeError, ValueError) as exc:
-            raise PayloadError(str(exc), key=key, type_name=cls.SCHEMA) from None
+            obj = cls._decoder.decode(raw)
+        except (msgspec.MsgspecError, RecursionError):
+            # Not valid as it is: decode it again as plain msgpack, to say which field is wrong and why
+            # (or to read a nil where NaN is allowed: JSON has no NaN).
+            return cls.from_dict(_unpack(raw, key, cls.SCHEMA), key)
         problem = obj.check()
         if problem:
             raise PayloadError(problem[1], key=key, type_name=cls.SCHEMA, field=problem[0])
         return obj
 
     @classmethod
-    def decode(cls: type[T], raw: bytes, key: str = "") -> T:
-        """Decode msgpack bytes of this type."""
-        return cls.from_dict(_unpack(raw, key, cls.SCHEMA), key)
+    def from_dict(cls: type[T], data: Any, key: str = "") -> T:
+        """Validate a wire map and build the payload; raise :class:`PayloadError` naming the field."""
+        if not isinstance(data, Mapping):
+            raise PayloadError(f"expected a map, got {type(data).__name__}", key=key, type_name=cls.SCHEMA)
+        data = dict(data)
+        for name in cls._nan_ok:
+            if name in data and data[name] is None:
+                data[name] = math.nan  # nil stands for "unknown" where NaN is allowed
+        try:
+            obj = msgspec.convert(data, cls)
+        except msgspec.ValidationError as exc:
+            field, reason = _explain(cls, data, str(exc))
+            raise PayloadError(reason, key=key, type_name=cls.SCHEMA, field=field) from None
+        problem = obj.check()
+        if problem:
+            raise PayloadError(problem[1], key=key, type_name=cls.SCHEMA, field=problem[0])
+        return obj
 
     def check(self) -> tuple[str, str] | None:
-        """Cross-field rules; return ``(field, reason)`` when broken."""
+        """What the field types cannot say: allowed names, NaN but no infinity where NaN is allowed.
+
+        Subclasses add their rules (unit quaternions, rules between fields); ``(field, reason)`` when
+        broken. Run on every decode, not on construction.
+        """
+        for name, allowed, listed in self._choices:
+            value = getattr(self, name)
+            if value not in allowed:
+                return name, f"{value!r} not one of {listed}"
+        for name in self._nan_ok:
+            value = getattr(self, name)
+            if math.isinf(value):
+                return name, f"not a finite number: {value}"
         return None
 
     def replace(self: T, **changes: Any) -> T:
         """A copy with some fields changed."""
-        return dataclasses.replace(self, **changes)  # type: ignore[type-var]
+        return msgspec.structs.replace(self, **changes)
 
 
-def _default_of(cls: type, name: str) -> Any:
-    f = cls.__dataclass_fields__[name]  # type: ignore[attr-defined]
-    if f.default is not dataclasses.MISSING:
-        return f.default
-    if f.default_factory is not dataclasses.MISSING:
-        return f.default_factory()
-    return dataclasses.MISSING
+def _enc_hook(obj: Any) -> Any:
+    """Numbers of subclasses msgspec does not take as they are (e.g. numpy.float64), as plain ones."""
+    if isinstance(obj, float):
+        return float(obj)
+    if isinstance(obj, int):
+        return int(obj)
+    raise TypeError(f"can not serialize {type(obj).__name__!r} object")
+
+
+_ENCODER = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
 
 
 def _unpack(raw: bytes, key: str, type_name: str) -> Any:
     try:
-        return msgpack.unpackb(bytes(raw), raw=False, strict_map_key=True, use_list=True)
-    except Exception as exc:  # msgpack raises several unrelated types on bad input
+        return msgspec.msgpack.decode(raw)
+    except Exception as exc:  # DecodeError; RecursionError on absurd nesting
         raise PayloadError(f"not valid msgpack: {exc}", key=key, type_name=type_name) from None
 
 
-def _number(spec: Spec, v: Any, key: str, schema: str, want_int: bool) -> float | int:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise PayloadError(
-            f"expected a number, got {type(v).__name__}", key=key, type_name=schema, field=spec.wire
-        )
-    if want_int:
-        if not isinstance(v, int):
-            raise PayloadError("expected an integer", key=key, type_name=schema, field=spec.wire)
-        if abs(v) > _MAX_INT:
-            raise PayloadError("integer out of range", key=key, type_name=schema, field=spec.wire)
-    else:
-        v = float(v)
-        if not math.isfinite(v) and not (spec.nan_ok and math.isnan(v)):
-            raise PayloadError(f"not a finite number: {v}", key=key, type_name=schema, field=spec.wire)
-    if (spec.lo is not None and v < spec.lo) or (spec.hi is not None and v > spec.hi):
-        raise PayloadError(f"{v} outside [{spec.lo}, {spec.hi}]", key=key, type_name=schema, field=spec.wire)
-    return v
+_WHERE = re.compile(
+    r"(?P<what>.*?)(?: - at (?P<in_key>`key` in )?`\$(?:\.(?P<field>\w+))?(?:\[(?P<i>\d+)\])?`)?"
+)
 
 
-def _check(spec: Spec, v: Any, key: str, schema: str) -> Any:
-    if v is None:
-        if spec.optional:
-            return None
-        if spec.nan_ok:
-            return math.nan  # JSON has no NaN: nil stands for "unknown" where NaN is allowed
-        raise PayloadError("must not be nil", key=key, type_name=schema, field=spec.wire)
-    kind = spec.kind
-    if kind == "int":
-        return _number(spec, v, key, schema, True)
-    if kind == "float":
-        return _number(spec, v, key, schema, False)
-    if kind == "bool":
-        if not isinstance(v, bool):
-            raise PayloadError(
-                f"expected a boolean, got {type(v).__name__}", key=key, type_name=schema, field=spec.wire
-            )
-        return v
-    if kind == "str":
-        if not isinstance(v, str):
-            raise PayloadError(
-                f"expected a string, got {type(v).__name__}", key=key, type_name=schema, field=spec.wire
-            )
-        if len(v) > 4096:
-            raise PayloadError("string longer than 4096", key=key, type_name=schema, field=spec.wire)
-        if spec.choices and v not in spec.choices:
-            raise PayloadError(
-                f"{v!r} not one of {', '.join(spec.choices)}", key=key, type_name=schema, field=spec.wire
-            )
-        return v
-    if kind in ("vec3", "quat"):
-        n = 3 if kind == "vec3" else 4
-        if not isinstance(v, (list, tuple)) or len(v) != n:
-            raise PayloadError(
-                f"expected an array of {n} numbers", key=key, type_name=schema, field=spec.wire
-            )
-        return tuple(_number(spec, x, key, schema, False) for x in v)
-    if kind == "strs":
-        if not isinstance(v, (list, tuple)) or not all(isinstance(x, str) for x in v) or len(v) > 256:
-            raise PayloadError("expected an array of strings", key=key, type_name=schema, field=spec.wire)
-        return tuple(v)
-    if kind == "map":
-        if not isinstance(v, Mapping) or not all(isinstance(k, str) for k in v):
-            raise PayloadError("expected a map with string keys", key=key, type_name=schema, field=spec.wire)
-        return dict(v)
-    raise AssertionError(kind)
-
-
-_ABSENT: Any = object()  # a field not in the map; also what a fast check returns to ask for the full one
-
-
-def _fast_check(spec: Spec) -> Callable[[Any], Any]:
-    """A check that returns a plain, valid value as it will be stored, else ``_ABSENT``.
-
-    It accepts a subset of what :func:`_check` accepts and returns the same value for it, so the hot
-    path (poses at the mocap rate) skips the general dispatch.  ``v - v == 0.0`` is false for NaN and ±inf.
-    """
-    lo = -math.inf if spec.lo is None else spec.lo
-    hi = math.inf if spec.hi is None else spec.hi
-    if spec.kind == "float":
-        return lambda v: v if type(v) is float and v - v == 0.0 and lo <= v <= hi else _ABSENT
-    if spec.kind == "int":
-        ilo, ihi = max(lo, -_MAX_INT), min(hi, _MAX_INT)
-        return lambda v: v if type(v) is int and ilo <= v <= ihi else _ABSENT
-    if spec.kind == "bool":
-        return lambda v: v if type(v) is bool else _ABSENT
-    if spec.kind == "str" and not spec.choices:
-        return lambda v: v if type(v) is str and len(v) <= 4096 else _ABSENT
-    if spec.kind == "str":
-        choices = frozenset(spec.choices)
-        return lambda v: v if type(v) is str and v in choices else _ABSENT
-    if spec.kind in ("vec3", "quat") and spec.lo is None and spec.hi is None:
+def _explain(cls: type[Payload], data: dict[str, Any], message: str) -> tuple[str, str]:
+    """``(field, reason)`` in the wire's words for msgspec's ``message`` about ``data``."""
+    m = _WHERE.fullmatch(message)
+    assert m is not None  # the pattern matches any text
+    missing = re.fullmatch(r"Object missing required field `(\w+)`", m["what"])
+    if missing:
+        return missing[1], "missing field"
+    spec = cls._by_wire.get(m["field"] or "")
+    if spec is None or m["in_key"]:
+        return m["field"] or "", "expected a map with string keys" if m["in_key"] else m["what"]
+    value = data.get(spec.wire)
+    if value is None:
+        return spec.wire, "must not be nil"
+    if spec.kind in ("vec3", "quat"):
         n = 3 if spec.kind == "vec3" else 4
-
-        def vector(v: Any) -> Any:
-            if type(v) is not list or len(v) != n:
-                return _ABSENT
-            for x in v:
-                if type(x) is not float or x - x != 0.0:
-                    return _ABSENT
-            return tuple(v)
-
-        return vector
-    return lambda v: _ABSENT
+        if not isinstance(value, (list, tuple)) or len(value) != n or m["i"] is None:
+            return spec.wire, f"expected an array of {n} numbers"
+        value = value[int(m["i"])]
+    kind = spec.kind
+    if kind in ("int", "float", "vec3", "quat"):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return spec.wire, f"expected a number, got {type(value).__name__}"
+        if kind == "int" and not isinstance(value, int):
+            return spec.wire, "expected an integer"
+        if kind != "int":
+            value = float(value)
+        if not math.isfinite(value):
+            return spec.wire, f"not a finite number: {value}"
+        if spec.lo is None and spec.hi is None:
+            return spec.wire, "integer out of range"  # beyond int64
+        return spec.wire, f"{value} outside [{spec.lo}, {spec.hi}]"
+    wrong_type: dict[str, tuple[type | tuple[type, ...], str]] = {
+        "bool": (bool, "expected a boolean"),
+        "str": (str, "expected a string"),
+        "strs": ((list, tuple), "expected an array of strings"),
+        "map": (dict, "expected a map with string keys"),
+    }
+    want, reason = wrong_type[kind]
+    if not isinstance(value, want):
+        return spec.wire, f"{reason}, got {type(value).__name__}"
+    if kind == "str":
+        return spec.wire, "string longer than 4096"
+    if kind == "strs" and isinstance(value, (list, tuple)) and len(value) > 256:
+        return spec.wire, "more than 256 strings"
+    return spec.wire, reason
 
 
 def _quat_problem(q: Quat | None, wire: str) -> tuple[str, str] | None:
     if q is None:
         return None
-    n = math.sqrt(sum(c * c for c in q))
+    n = math.hypot(*q)
     if abs(n - 1.0) > 1e-3:
         return wire, f"quaternion norm {n:.4f} is not 1"
     return None
@@ -271,157 +312,153 @@ def _quat_problem(q: Quat | None, wire: str) -> tuple[str, str] | None:
 REGISTRY: dict[str, type[Payload]] = {}
 
 
-@dataclass_transform(frozen_default=True, field_specifiers=(field, _f))
 def payload(cls: type[T]) -> type[T]:
-    """Class decorator: freeze as a slotted dataclass, collect field specs, register the schema."""
-    dc = dataclass(frozen=True, slots=True)(cls)
-    dc._specs = tuple((f.name, f.metadata["wire"]) for f in dataclasses.fields(dc))  # type: ignore[arg-type]
-    dc._encode_plan = tuple((name, spec.wire, spec.optional) for name, spec in dc._specs)
-    dc._decode_plan = tuple((name, spec, _fast_check(spec)) for name, spec in dc._specs)
-    REGISTRY[dc.SCHEMA] = dc
-    return dc
+    """Class decorator: read the field specs from the annotations, build the decoder, register the schema."""
+    info = msgspec.inspect.type_info(cls)
+    assert isinstance(info, msgspec.inspect.StructType)
+    fields = info.fields
+    for f in fields:
+        if f.default is not msgspec.NODEFAULT and f.default is not None:
+            raise TypeError(f"{cls.__name__}.{f.name}: give its default as _always(...) so that it travels")
+    cls._specs = tuple((f.name, _spec(cls, f)) for f in fields)
+    cls._by_wire = {spec.wire: spec for _, spec in cls._specs}
+    cls._choices = tuple(
+        (name, frozenset(spec.choices), ", ".join(spec.choices)) for name, spec in cls._specs if spec.choices
+    )
+    cls._nan_ok = tuple(name for name, spec in cls._specs if spec.nan_ok)
+    cls._decoder = msgspec.msgpack.Decoder(cls)
+    REGISTRY[cls.SCHEMA] = cls
+    return cls
 
+
+def default_of(cls: type[Payload], name: str) -> Any:
+    """The value field ``name`` takes when a sender omits it, or ``dataclasses.MISSING`` when required."""
+    for f in msgspec.structs.fields(cls):
+        if f.name == name:
+            if f.default_factory is not msgspec.NODEFAULT:
+                return f.default_factory()
+            if f.default is not msgspec.NODEFAULT:
+                return f.default
+    return dataclasses.MISSING
+
+
+_default_of = default_of  # the name the fuzz tests use
+
+# -- the payload types ---------------------------------------------------------------------------------
 
 _LANDED = ("undefined", "on_ground", "in_air", "takeoff", "landing")
 _TSRC = ("echo", "latency", "arrival", "sim")
 
 
 @payload
-class MocapPose(Payload):
+class MocapPose(Payload, frozen=True):
     """A rigid body as Motive streamed it, in Motive's own frame (Y-up or Z-up)."""
 
     SCHEMA = "MocapPose"
     DOC = "A rigid body as Motive streamed it, in Motive's frame; `ok` false when Motive lost tracking."
-    t: int = _f("t", "int", "Measurement time (camera mid-exposure on the local clock)", unit="ns")
-    fn: int = _f("fn", "int", "Motive frame number", lo=0)
-    id: int = _f("id", "int", "Motive rigid-body id")
-    p: Vec3 = _f("p", "vec3", "Position x, y, z in Motive's frame", unit="m")
-    q: Quat = _f("q", "quat", "Attitude quaternion w, x, y, z in Motive's frame (body to world)")
-    ok: bool = _f("ok", "bool", "Tracking valid (Motive's rigid-body params bit 0)")
-    name: str = _f("name", "str", "Rigid-body name from Motive's model definitions", default="")
-    err: float = _f(
-        "err", "float", "Mean marker error (NaN when unknown)", default=math.nan, unit="m", nan_ok=True
+    t: Annotated[int, _int("Measurement time (camera mid-exposure on the local clock)", unit="ns")]
+    fn: Annotated[int, _int("Motive frame number", lo=0)]
+    id: Annotated[int, _int("Motive rigid-body id")]
+    p: Annotated[Vec3, _doc("Position x, y, z in Motive's frame", unit="m")]
+    q: Annotated[Quat, _doc("Attitude quaternion w, x, y, z in Motive's frame (body to world)")]
+    ok: Annotated[bool, _doc("Tracking valid (Motive's rigid-body params bit 0)")]
+    name: Annotated[Str, _doc("Rigid-body name from Motive's model definitions")] = _always("")
+    err: Annotated[float, _float("Mean marker error (NaN when unknown)", unit="m", nan_ok=True)] = _always(
+        math.nan
     )
-    lat: int = _f(
-        "lat", "int", "System latency, camera exposure to transmit (-1 unknown)", default=-1, unit="ns"
+    lat: Annotated[int, _int("System latency, camera exposure to transmit (-1 unknown)", unit="ns")] = (
+        _always(-1)
     )
-    mts: float = _f("mts", "float", "Motive's session timestamp", default=0.0, unit="s")
-    tsrc: str = _f("tsrc", "str", "How `t` was obtained", default="arrival", choices=_TSRC)
-    tp: int = _f("tp", "int", "Publish time", default=0, unit="ns")
+    mts: Annotated[float, _float("Motive's session timestamp", unit="s")] = _always(0.0)
+    tsrc: Annotated[Str, _doc("How `t` was obtained", choices=_TSRC)] = _always("arrival")
+    tp: Annotated[int, _int("Publish time", unit="ns")] = _always(0)
 
     def check(self) -> tuple[str, str] | None:
-        return _quat_problem(self.q, "q") if self.ok else None
+        return super().check() or (_quat_problem(self.q, "q") if self.ok else None)
 
 
 @payload
-class Pose(Payload):
+class Pose(Payload, frozen=True):
     """A pose in the arena frame: NED position, FRD body attitude, with estimated velocities."""
 
     SCHEMA = "Pose"
     DOC = "Pose in the arena frame (NED position, FRD body quaternion) with finite-difference velocities."
-    t: int = _f("t", "int", "Measurement time", unit="ns")
-    p: Vec3 = _f("p", "vec3", "Position north, east, down", unit="m")
-    q: Quat = _f("q", "quat", "Attitude quaternion w, x, y, z, body FRD to arena NED")
-    ok: bool = _f("ok", "bool", "Pose valid (tracked); never send an invalid pose to an autopilot")
-    fn: int = _f("fn", "int", "Motive frame number (0 when not from Motive)", default=0, lo=0)
-    v: Vec3 = _f("v", "vec3", "Velocity north, east, down", default=(0.0, 0.0, 0.0), unit="m/s")
-    w: Vec3 = _f("w", "vec3", "Angular velocity, body FRD", default=(0.0, 0.0, 0.0), unit="rad/s")
-    vok: bool = _f("vok", "bool", "Velocities valid", default=False)
-    rc: int = _f(
-        "rc",
-        "int",
-        "Reset counter: changes when the pose jumps (re-acquired, recalibrated)",
-        default=0,
-        lo=0,
-        hi=255,
-    )
-    tp: int = _f("tp", "int", "Publish time", default=0, unit="ns")
+    t: Annotated[int, _int("Measurement time", unit="ns")]
+    p: Annotated[Vec3, _doc("Position north, east, down", unit="m")]
+    q: Annotated[Quat, _doc("Attitude quaternion w, x, y, z, body FRD to arena NED")]
+    ok: Annotated[bool, _doc("Pose valid (tracked); never send an invalid pose to an autopilot")]
+    fn: Annotated[int, _int("Motive frame number (0 when not from Motive)", lo=0)] = _always(0)
+    v: Annotated[Vec3, _doc("Velocity north, east, down", unit="m/s")] = _always((0.0, 0.0, 0.0))
+    w: Annotated[Vec3, _doc("Angular velocity, body FRD", unit="rad/s")] = _always((0.0, 0.0, 0.0))
+    vok: Annotated[bool, _doc("Velocities valid")] = _always(False)
+    rc: Annotated[
+        int, _int("Reset counter: changes when the pose jumps (re-acquired, recalibrated)", lo=0, hi=255)
+    ] = _always(0)
+    tp: Annotated[int, _int("Publish time", unit="ns")] = _always(0)
 
     def check(self) -> tuple[str, str] | None:
-        return _quat_problem(self.q, "q") if self.ok else None
+        return super().check() or (_quat_problem(self.q, "q") if self.ok else None)
 
 
 @payload
-class State(Payload):
+class State(Payload, frozen=True):
     """The vehicle as its autopilot reports it, plus the health of the gateway's link and vision."""
 
     SCHEMA = "State"
     DOC = "The vehicle as its autopilot reports it, with link and vision-pipeline health."
-    t: int = _f("t", "int", "Time of this snapshot", unit="ns")
-    sysid: int = _f("sysid", "int", "MAVLink system id of the autopilot", default=0, lo=0, hi=255)
-    link: bool = _f("link", "bool", "Heartbeats arriving (none for 3 s = link lost)", default=False)
-    armed: bool = _f("armed", "bool", "Motors armed", default=False)
-    mode: str = _f(
-        "mode", "str", "Flight mode by name (PX4 naming, e.g. OFFBOARD, AUTO.LAND)", default="UNKNOWN"
+    t: Annotated[int, _int("Time of this snapshot", unit="ns")]
+    sysid: Annotated[int, _int("MAVLink system id of the autopilot", lo=0, hi=255)] = _always(0)
+    link: Annotated[bool, _doc("Heartbeats arriving (none for 3 s = link lost)")] = _always(False)
+    armed: Annotated[bool, _doc("Motors armed")] = _always(False)
+    mode: Annotated[Str, _doc("Flight mode by name (PX4 naming, e.g. OFFBOARD, AUTO.LAND)")] = _always(
+        "UNKNOWN"
     )
-    landed: str = _f("landed", "str", "Landed state", default="undefined", choices=_LANDED)
-    p: Vec3 | None = _f(
-        "p", "vec3", "Autopilot's local position estimate, NED", default=None, unit="m", optional=True
-    )
-    v: Vec3 | None = _f(
-        "v", "vec3", "Autopilot's velocity estimate, NED", default=None, unit="m/s", optional=True
-    )
-    q: Quat | None = _f("q", "quat", "Autopilot's attitude, FRD to NED", default=None, optional=True)
-    mp: Vec3 | None = _f(
-        "mp", "vec3", "Last mocap position sent as vision", default=None, unit="m", optional=True
-    )
-    bat: float | None = _f(
-        "bat", "float", "Battery remaining, 0–1", default=None, lo=0.0, hi=1.0, optional=True
-    )
-    volt: float | None = _f("volt", "float", "Battery voltage", default=None, unit="V", optional=True)
-    rtt: float | None = _f(
-        "rtt", "float", "Link round-trip time from TIMESYNC", default=None, unit="s", optional=True
-    )
-    hb_age: float | None = _f(
-        "hb_age", "float", "Age of the last heartbeat", default=None, unit="s", optional=True
-    )
-    vis_rate: float = _f(
-        "vis_rate", "float", "Vision samples sent per second", default=0.0, unit="Hz", lo=0.0
-    )
-    vis_age: float | None = _f(
-        "vis_age", "float", "Age of the last vision sample sent", default=None, unit="s", optional=True
-    )
-    vis_fused: bool = _f(
-        "vis_fused", "bool", "The autopilot's estimate follows the vision input", default=False
-    )
-    ofb: bool = _f("ofb", "bool", "Offboard setpoints are being streamed to the autopilot", default=False)
-    setup_ok: bool = _f(
-        "setup_ok", "bool", "The arena's required autopilot parameters are set", default=False
-    )
-    fs: tuple[str, ...] = _f("fs", "strs", "Active failsafes or warnings", default=())
-    tp: int = _f("tp", "int", "Publish time", default=0, unit="ns")
+    landed: Annotated[Str, _doc("Landed state", choices=_LANDED)] = _always("undefined")
+    p: Annotated[Vec3, _doc("Autopilot's local position estimate, NED", unit="m")] | None = None
+    v: Annotated[Vec3, _doc("Autopilot's velocity estimate, NED", unit="m/s")] | None = None
+    q: Annotated[Quat, _doc("Autopilot's attitude, FRD to NED")] | None = None
+    mp: Annotated[Vec3, _doc("Last mocap position sent as vision", unit="m")] | None = None
+    bat: Annotated[float, _float("Battery remaining, 0–1", lo=0.0, hi=1.0)] | None = None
+    volt: Annotated[float, _float("Battery voltage", unit="V")] | None = None
+    rtt: Annotated[float, _float("Link round-trip time from TIMESYNC", unit="s")] | None = None
+    hb_age: Annotated[float, _float("Age of the last heartbeat", unit="s")] | None = None
+    vis_rate: Annotated[float, _float("Vision samples sent per second", unit="Hz", lo=0.0)] = _always(0.0)
+    vis_age: Annotated[float, _float("Age of the last vision sample sent", unit="s")] | None = None
+    vis_fused: Annotated[bool, _doc("The autopilot's estimate follows the vision input")] = _always(False)
+    ofb: Annotated[bool, _doc("Offboard setpoints are being streamed to the autopilot")] = _always(False)
+    setup_ok: Annotated[bool, _doc("The arena's required autopilot parameters are set")] = _always(False)
+    fs: Annotated[Strs, _doc("Active failsafes or warnings")] = _always(())
+    tp: Annotated[int, _int("Publish time", unit="ns")] = _always(0)
 
     def check(self) -> tuple[str, str] | None:
-        return _quat_problem(self.q, "q")
+        return super().check() or _quat_problem(self.q, "q")
 
 
 @payload
-class Telemetry(Payload):
+class Telemetry(Payload, frozen=True):
     """One raw MAVLink message from the autopilot, its fields as a map."""
 
     SCHEMA = "Telemetry"
     DOC = "One raw MAVLink message from the autopilot: its name and fields."
-    t: int = _f("t", "int", "Receive time", unit="ns")
-    msg: str = _f("msg", "str", "MAVLink message name")
-    f: dict[str, Any] = _f("f", "map", "Message fields by MAVLink name", default={})
+    t: Annotated[int, _int("Receive time", unit="ns")]
+    msg: Annotated[Str, _doc("MAVLink message name")]
+    f: Annotated[Map, _doc("Message fields by MAVLink name")] = _always({})
+
+
+_EVENT_KINDS = ("statustext", "mode", "armed", "failsafe", "command", "safety", "link", "setup", "info")
 
 
 @payload
-class Event(Payload):
+class Event(Payload, frozen=True):
     """Something that happened: status text, a mode or arming change, a failsafe, a command result."""
 
     SCHEMA = "Event"
     DOC = "Something that happened to a vehicle or service; severity as MAV_SEVERITY (0 emergency … 7 debug)."
-    t: int = _f("t", "int", "Time it happened", unit="ns")
-    kind: str = _f(
-        "kind",
-        "str",
-        "statustext, mode, armed, failsafe, command, safety, link, setup, info",
-        choices=("statustext", "mode", "armed", "failsafe", "command", "safety", "link", "setup", "info"),
-    )
-    text: str = _f("text", "str", "Human-readable text")
-    sev: int = _f("sev", "int", "Severity (MAV_SEVERITY)", default=6, lo=0, hi=7)
-    data: dict[str, Any] = _f("data", "map", "Details", default={})
+    t: Annotated[int, _int("Time it happened", unit="ns")]
+    kind: Annotated[Str, _doc(", ".join(_EVENT_KINDS), choices=_EVENT_KINDS)]
+    text: Annotated[Str, _doc("Human-readable text")]
+    sev: Annotated[int, _int("Severity (MAV_SEVERITY)", lo=0, hi=7)] = _always(6)
+    data: Annotated[Map, _doc("Details")] = _always({})
 
 
 COMMAND_OPS = (
@@ -445,18 +482,16 @@ COMMAND_OPS = (
 
 
 @payload
-class Command(Payload):
+class Command(Payload, frozen=True):
     """A request to a vehicle's gateway (or a service), answered by a :class:`CommandResult`."""
 
     SCHEMA = "Command"
     DOC = "A command; `args` per op: takeoff {height}, mode {mode}, goto {p, yaw}, param_get {name}, …"
-    op: str = _f("op", "str", "Operation", choices=COMMAND_OPS)
-    args: dict[str, Any] = _f("args", "map", "Arguments of the operation", default={})
-    src: str = _f("src", "str", "Who sends it (host/program)", default="")
-    timeout: float = _f(
-        "timeout", "float", "How long the caller waits", default=5.0, unit="s", lo=0.0, hi=600.0
-    )
-    t: int = _f("t", "int", "Time sent", default=0, unit="ns")
+    op: Annotated[Str, _doc("Operation", choices=COMMAND_OPS)]
+    args: Annotated[Map, _doc("Arguments of the operation")] = _always({})
+    src: Annotated[Str, _doc("Who sends it (host/program)")] = _always("")
+    timeout: Annotated[float, _float("How long the caller waits", unit="s", lo=0.0, hi=600.0)] = _always(5.0)
+    t: Annotated[int, _int("Time sent", unit="ns")] = _always(0)
 
 
 RESULTS = (
@@ -474,35 +509,35 @@ RESULTS = (
 
 
 @payload
-class CommandResult(Payload):
+class CommandResult(Payload, frozen=True):
     """The answer to a :class:`Command`: the autopilot's result, a timeout, or a refusal with its reason."""
 
     SCHEMA = "CommandResult"
     DOC = "Answer to a Command: MAV_RESULT name, TIMEOUT, REFUSED (safety rules) or ERROR (bad request)."
-    ok: bool = _f("ok", "bool", "True when the command succeeded")
-    result: str = _f("result", "str", "Outcome", choices=RESULTS)
-    reason: str = _f("reason", "str", "Why, in words", default="")
-    value: dict[str, Any] = _f("value", "map", "Returned data (e.g. parameter values)", default={})
-    t: int = _f("t", "int", "Time answered", default=0, unit="ns")
+    ok: Annotated[bool, _doc("True when the command succeeded")]
+    result: Annotated[Str, _doc("Outcome", choices=RESULTS)]
+    reason: Annotated[Str, _doc("Why, in words")] = _always("")
+    value: Annotated[Map, _doc("Returned data (e.g. parameter values)")] = _always({})
+    t: Annotated[int, _int("Time answered", unit="ns")] = _always(0)
 
 
 @payload
-class Setpoint(Payload):
+class Setpoint(Payload, frozen=True):
     """An offboard setpoint in the arena NED frame, valid for ``lease`` seconds."""
 
     SCHEMA = "Setpoint"
     DOC = "Offboard setpoint in the arena NED frame; forwarded only while its lease runs."
-    t: int = _f("t", "int", "Time sent", unit="ns")
-    lease: float = _f("lease", "float", "How long it stays valid", default=0.5, unit="s", lo=0.05, hi=5.0)
-    p: Vec3 | None = _f("p", "vec3", "Position north, east, down", default=None, unit="m", optional=True)
-    v: Vec3 | None = _f(
-        "v", "vec3", "Velocity (or feed-forward with p)", default=None, unit="m/s", optional=True
-    )
-    yaw: float | None = _f("yaw", "float", "Yaw", default=None, unit="rad", optional=True)
-    yr: float | None = _f("yr", "float", "Yaw rate", default=None, unit="rad/s", optional=True)
-    src: str = _f("src", "str", "Who sends it", default="")
+    t: Annotated[int, _int("Time sent", unit="ns")]
+    lease: Annotated[float, _float("How long it stays valid", unit="s", lo=0.05, hi=5.0)] = _always(0.5)
+    p: Annotated[Vec3, _doc("Position north, east, down", unit="m")] | None = None
+    v: Annotated[Vec3, _doc("Velocity (or feed-forward with p)", unit="m/s")] | None = None
+    yaw: Annotated[float, _float("Yaw", unit="rad")] | None = None
+    yr: Annotated[float, _float("Yaw rate", unit="rad/s")] | None = None
+    src: Annotated[Str, _doc("Who sends it")] = _always("")
 
     def check(self) -> tuple[str, str] | None:
+        if problem := super().check():
+            return problem
         if self.p is None and self.v is None:
             return "p", "a setpoint needs a position (p) or a velocity (v)"
         if self.yaw is not None and self.yr is not None:
@@ -511,40 +546,40 @@ class Setpoint(Payload):
 
 
 @payload
-class Estop(Payload):
+class Estop(Payload, frozen=True):
     """Stop everything: every gateway lands its vehicle (or cuts its motors with ``kill``)."""
 
     SCHEMA = "Estop"
     DOC = "Emergency stop for every vehicle: land, or kill motors when `kill` is true."
-    t: int = _f("t", "int", "Time sent", unit="ns")
-    kill: bool = _f("kill", "bool", "Cut motors instead of landing", default=False)
-    reason: str = _f("reason", "str", "Why", default="")
-    src: str = _f("src", "str", "Who sent it", default="")
+    t: Annotated[int, _int("Time sent", unit="ns")]
+    kill: Annotated[bool, _doc("Cut motors instead of landing")] = _always(False)
+    reason: Annotated[Str, _doc("Why")] = _always("")
+    src: Annotated[Str, _doc("Who sent it")] = _always("")
 
 
 @payload
-class Stats(Payload):
+class Stats(Payload, frozen=True):
     """A service's counters, published every second."""
 
     SCHEMA = "Stats"
     DOC = "A service's counters: messages in/out, rejected inputs by reason, rates, latencies, resources."
-    t: int = _f("t", "int", "Time of the snapshot", unit="ns")
-    service: str = _f("service", "str", "Service id")
-    host: str = _f("host", "str", "Host name")
-    pid: int = _f("pid", "int", "Process id", default=0)
-    up: float = _f("up", "float", "Uptime", default=0.0, unit="s")
-    counts: dict[str, Any] = _f("counts", "map", "Counters since start (in, out, …)", default={})
-    rejected: dict[str, Any] = _f("rejected", "map", "Rejected inputs since start, by reason", default={})
-    rates: dict[str, Any] = _f(
-        "rates", "map", "Per-second rates over the last interval", default={}, unit="Hz"
+    t: Annotated[int, _int("Time of the snapshot", unit="ns")]
+    service: Annotated[Str, _doc("Service id")]
+    host: Annotated[Str, _doc("Host name")]
+    pid: Annotated[int, _int("Process id")] = _always(0)
+    up: Annotated[float, _float("Uptime", unit="s")] = _always(0.0)
+    counts: Annotated[Map, _doc("Counters since start (in, out, …)")] = _always({})
+    rejected: Annotated[Map, _doc("Rejected inputs since start, by reason")] = _always({})
+    rates: Annotated[Map, _doc("Per-second rates over the last interval", unit="Hz")] = _always({})
+    lat: Annotated[Map, _doc("Latency figures (p50, p99, max) over the last interval", unit="s")] = _always(
+        {}
     )
-    lat: dict[str, Any] = _f(
-        "lat", "map", "Latency figures (p50, p99, max) over the last interval", default={}, unit="s"
-    )
-    cpu: float = _f("cpu", "float", "CPU use over the last interval, percent of one core", default=0.0)
-    rss: int = _f("rss", "int", "Resident memory", default=0, unit="byte")
-    vehicle: str = _f("vehicle", "str", "Vehicle served, if any", default="")
+    cpu: Annotated[float, _float("CPU use over the last interval, percent of one core")] = _always(0.0)
+    rss: Annotated[int, _int("Resident memory", unit="byte")] = _always(0)
+    vehicle: Annotated[Str, _doc("Vehicle served, if any")] = _always("")
 
+
+# -- which type a sample carries -----------------------------------------------------------------------
 
 _KIND_TO_TYPE: dict[str, type[Payload]] = {
     "mocap": MocapPose,
@@ -592,26 +627,17 @@ def type_for_encoding(encoding: str) -> type[Payload] | None:
     return cls
 
 
-_DECODERS: dict[tuple[str, str], type[Payload]] = {}  # (key, encoding) → type, for pairs seen valid
-_DECODERS_MAX = 4096
-
-
 def decode_any(key: str, raw: bytes, encoding: str = "") -> Payload:
     """Decode a payload as the type its key carries.
 
     An encoding that names a schema must name that same type (a ``State`` sent on a vision key is
     refused, never handed on as a State); keys outside the table are decoded by their encoding.
     """
-    cls = _DECODERS.get((key, encoding))
-    if cls is None:
-        cls = _decoder_for(key, encoding)
-        if len(_DECODERS) >= _DECODERS_MAX:  # bounded: a flood of odd keys only costs the slow path
-            _DECODERS.clear()
-        _DECODERS[(key, encoding)] = cls
-    return cls.decode(raw, key)
+    return _type_for(key, encoding).decode(raw, key)
 
 
-def _decoder_for(key: str, encoding: str) -> type[Payload]:
+@functools.lru_cache(maxsize=4096)  # a refused pair raises, so only pairs that decode are remembered
+def _type_for(key: str, encoding: str) -> type[Payload]:
     by_encoding = type_for_encoding(encoding) if encoding else None
     try:
         by_key: type[Payload] | None = type_for_key(key)
@@ -632,24 +658,31 @@ def _decoder_for(key: str, encoding: str) -> type[Payload]:
     return cls
 
 
-_JSON_KIND: dict[str, Callable[[Spec], dict[str, Any]]] = {
-    "int": lambda s: {"type": "integer"},
-    "float": lambda s: {"type": "number"},
-    "bool": lambda s: {"type": "boolean"},
-    "str": lambda s: {"type": "string", **({"enum": list(s.choices)} if s.choices else {})},
-    "vec3": lambda s: {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
-    "quat": lambda s: {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
-    "strs": lambda s: {"type": "array", "items": {"type": "string"}},
-    "map": lambda s: {"type": "object"},
+# -- JSON ------------------------------------------------------------------------------------------------
+
+_JSON_KIND: dict[str, dict[str, Any]] = {
+    "int": {"type": "integer"},
+    "float": {"type": "number"},
+    "bool": {"type": "boolean"},
+    "str": {"type": "string"},
+    "vec3": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+    "quat": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
+    "strs": {"type": "array", "items": {"type": "string"}},
+    "map": {"type": "object"},
 }
 
 
 def json_schema(cls: type[Payload]) -> dict[str, Any]:
-    """JSON Schema (draft 2020-12) of one payload type's wire map, generated from its field specs."""
+    """JSON Schema (draft 2020-12) of one payload type's JSON rendering, generated from its Struct fields.
+
+    It describes :func:`to_jsonable`'s output rather than the msgpack bytes, so NaN is ``null``.
+    """
     props: dict[str, Any] = {}
     required: list[str] = []
-    for name, spec in cls._specs:
-        prop = _JSON_KIND[spec.kind](spec)
+    for _, spec in cls._specs:
+        prop = dict(_JSON_KIND[spec.kind])
+        if spec.choices:
+            prop["enum"] = list(spec.choices)
         desc = spec.doc + (f" [{spec.unit}]" if spec.unit else "")
         prop["description"] = desc
         if spec.lo is not None:
@@ -664,7 +697,7 @@ def json_schema(cls: type[Payload]) -> dict[str, Any]:
                 "anyOf": [{k: v for k, v in prop.items() if k != "description"}, {"type": "null"}],
             }
         props[spec.wire] = prop
-        if _default_of(cls, name) is dataclasses.MISSING:
+        if spec.required:
             required.append(spec.wire)
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",

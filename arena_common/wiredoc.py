@@ -15,7 +15,6 @@ the code (changed, missing or stale), so CI catches a payload change without its
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import re
@@ -644,12 +643,9 @@ def _range(spec: wire.Spec) -> str:
 def _required(cls: type[wire.Payload], name: str, spec: wire.Spec) -> str:
     if spec.optional:
         return "no — omitted when unknown"
-    f = cls.__dataclass_fields__[name]  # type: ignore[attr-defined]
-    if f.default is not dataclasses.MISSING:
-        return f"no — default `{_json_value(f.default)}`"
-    if f.default_factory is not dataclasses.MISSING:
-        return f"no — default `{_json_value(f.default_factory())}`"
-    return "**yes**"
+    if spec.required:
+        return "**yes**"
+    return f"no — default `{_json_value(wire.default_of(cls, name))}`"
 
 
 def _keys_for(schema: str) -> list[keys.KeySpec]:

@@ -15,10 +15,7 @@ import math
 import re
 import threading
 import time
-from collections.abc import Callable
-from typing import Any
 
-import msgpack
 import typer
 
 from arena_common import keys, wire
@@ -42,12 +39,7 @@ from arena_common.options import (
 from arena_common.service import Service, running, setup_logging
 
 MAX_UNKNOWN_KEYS = 256  # publishers created for unclaimed bodies, at most
-_FIELDS = ("t", "fn", "id", "p", "q", "ok", "name", "err", "lat", "mts", "tsrc", "tp")
-_WIRE = tuple(spec.wire for _, spec in wire.MocapPose._specs)
-_FAST = tuple(name for name, _ in wire.MocapPose._specs) == _FIELDS and _WIRE == _FIELDS
-_NAN = math.nan
 _BAD_KEY_CHARS = re.compile(r"[^A-Za-z0-9_.\-]")
-_PACK: Callable[[Any], bytes] = msgpack.Packer(use_bin_type=True).pack
 
 
 class _Route:
@@ -86,23 +78,17 @@ def encode_pose(
     tp: int,
 ) -> bytes:
     """The msgpack bytes of the :class:`~arena_common.wire.MocapPose` for ``body`` (Motive's x, y, z, w
-    quaternion becomes the wire's w, x, y, z), built without the dataclass: this runs for every body of
-    every frame. Byte for byte what ``MocapPose(...).encode()`` gives. An untracked body's pose is kept
-    when finite, else zeroed (receivers refuse non-finite numbers)."""
+    quaternion becomes the wire's w, x, y, z). An untracked body's pose is kept when finite, else zeroed
+    (receivers refuse non-finite numbers); an unknown or non-finite marker error is sent as NaN."""
     qx, qy, qz, qw = body.quat_xyzw
     err = body.mean_error
-    p = list(body.pos)
-    q = [qw, qx, qy, qz]
-    if not ok and not all(map(math.isfinite, p + q)):
-        p, q = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]  # an untracked body's numbers may be anything
-    if err is not None and not math.isfinite(err):
-        err = None
-    values = (t, fn, body.id, p, q, ok, name, _NAN if err is None else err, lat, mts, tsrc, tp)
-    if _FAST:
-        return _PACK(dict(zip(_FIELDS, values, strict=True)))
-    kwargs: dict[str, Any] = dict(zip(_FIELDS, values, strict=True))
-    kwargs["p"], kwargs["q"] = tuple(p), tuple(q)
-    return wire.MocapPose(**kwargs).encode()
+    p = body.pos
+    q = (qw, qx, qy, qz)
+    if not ok and not all(map(math.isfinite, (*p, *q))):
+        p, q = (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)  # an untracked body's numbers may be anything
+    if err is None or not math.isfinite(err):
+        err = math.nan
+    return wire.MocapPose(t, fn, body.id, p, q, ok, name, err, lat, mts, tsrc, tp).encode()
 
 
 def _valid(body: RigidBody) -> bool:
@@ -185,7 +171,7 @@ class Ingest:
         routes = self._routes
         tp = time.time_ns()
         fn, t, lat, mts, tsrc = frame.frame_number, frame.t, frame.lat, frame.mts, frame.tsrc
-        # The fast encoder does not validate: what the wire contract refuses never leaves here.
+        # Encoding does not validate: what the wire contract refuses must not leave here.
         if fn < 0:
             self.svc.reject("bad_frame", f"frame number {fn}")
             return 0

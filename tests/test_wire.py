@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import msgpack
@@ -108,3 +109,160 @@ def test_random_maps_only_raise_payload_error(data: dict) -> None:
     except PayloadError:
         return
     assert all(math.isfinite(x) for x in p.p)
+
+
+# -- the Struct encoding is msgpack's own: same bytes as msgpack-python packing the same map ----------------
+
+_FLOATS = st.floats(allow_nan=True, allow_infinity=True)
+_VALUES = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**63), 2**64 - 1)
+    | _FLOATS
+    | st.text(max_size=40)
+    | st.binary(max_size=4),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=5), inner, max_size=4),
+    max_leaves=8,
+)
+
+
+def _field_values(spec: wire.Spec) -> st.SearchStrategy[object]:
+    return {
+        "int": st.integers(-(2**63) + 1, 2**63 - 1),
+        "float": _FLOATS,
+        "bool": st.booleans(),
+        "str": st.sampled_from(spec.choices) if spec.choices else st.text(max_size=300),
+        "vec3": st.tuples(_FLOATS, _FLOATS, _FLOATS),
+        "quat": st.tuples(_FLOATS, _FLOATS, _FLOATS, _FLOATS),
+        "strs": st.lists(st.text(max_size=5), max_size=4).map(tuple),
+        "map": st.dictionaries(st.text(max_size=8), _VALUES, max_size=5),
+    }[spec.kind]
+
+
+@st.composite
+def any_payload(draw: st.DrawFn) -> wire.Payload:
+    cls = draw(st.sampled_from(sorted(wire.REGISTRY.values(), key=lambda c: c.SCHEMA)))
+    kwargs: dict[str, object] = {}
+    for name, spec in cls._specs:
+        if spec.required or draw(st.booleans()):
+            kwargs[name] = None if spec.optional and draw(st.booleans()) else draw(_field_values(spec))
+    return cls(**kwargs)
+
+
+@settings(max_examples=500, deadline=None)
+@given(any_payload())
+def test_encode_is_what_msgpack_packs_for_the_wire_map(p: wire.Payload) -> None:
+    raw = p.encode()
+    assert raw == msgpack.packb(p.to_dict(), use_bin_type=True)  # smallest headers, float64, str not bin
+    wire_map = msgpack.unpackb(raw)
+    assert list(wire_map) == [s.wire for name, s in p._specs if not (s.optional and getattr(p, name) is None)]
+
+
+def test_defaults_travel_and_unknown_optional_fields_are_omitted() -> None:
+    state = wire.State(t=1)
+    raw = state.encode()
+    assert raw[0] == 0x80 | 12  # a fixmap: 12 of State's 21 fields (map16 only from 16 fields on)
+    assert msgpack.unpackb(raw) == {
+        "t": 1,
+        "sysid": 0,
+        "link": False,
+        "armed": False,
+        "mode": "UNKNOWN",
+        "landed": "undefined",
+        "vis_rate": 0.0,
+        "vis_fused": False,
+        "ofb": False,
+        "setup_ok": False,
+        "fs": [],
+        "tp": 0,
+    }
+    assert wire.State.decode(raw) == state
+    assert msgpack.unpackb(wire.Setpoint(t=1, v=(0.0, 0.0, 0.0)).encode()) == {
+        "t": 1,
+        "lease": 0.5,
+        "v": [0.0, 0.0, 0.0],
+        "src": "",
+    }
+
+
+def test_numpy_floats_encode_as_floats() -> None:
+    np = pytest.importorskip("numpy")
+    pose = wire.Pose(t=1, p=tuple(np.array([1.0, 2.0, 3.0])), q=(1.0, 0.0, 0.0, 0.0), ok=True)
+    assert pose.encode() == POSE.replace(t=1, fn=0, p=(1.0, 2.0, 3.0)).encode()
+    with pytest.raises(TypeError, match="can not serialize"):
+        wire.Telemetry(t=1, msg="X", f={"x": object()}).encode()
+
+
+def test_rules_run_on_decode_not_on_construction() -> None:
+    bad = wire.Pose(t=1, p=(0.0, 0.0, 0.0), q=(2.0, 0.0, 0.0, 0.0), ok=True)  # a test may build one
+    with pytest.raises(PayloadError, match=r"norm 2.0000 is not 1.*field=q"):
+        wire.Pose.decode(bad.encode())
+    assert bad.check() == ("q", "quaternion norm 2.0000 is not 1")
+    assert wire.Pose.decode(bad.replace(ok=False).encode()).q == (2.0, 0.0, 0.0, 0.0)  # untracked: anything
+
+
+def test_nan_where_allowed_nil_reads_as_nan_and_infinity_is_refused() -> None:
+    m = wire.MocapPose(t=1, fn=1, id=1, p=(0.0, 0.0, 0.0), q=(1.0, 0.0, 0.0, 0.0), ok=True).to_dict()
+    assert math.isnan(wire.MocapPose.decode(msgpack.packb(m)).err)
+    assert math.isnan(wire.MocapPose.decode(msgpack.packb(m | {"err": None})).err)  # JSON has no NaN
+    with pytest.raises(PayloadError, match=r"not a finite number: inf.*field=err"):
+        wire.MocapPose.decode(msgpack.packb(m | {"err": math.inf}))
+    with pytest.raises(PayloadError, match=r"not a finite number: nan.*field=mts"):
+        wire.MocapPose.decode(msgpack.packb(m | {"mts": math.nan}))
+
+
+@pytest.mark.parametrize(
+    ("mutation", "field", "reason"),
+    [
+        ({"t": None}, "t", "must not be nil"),
+        ({"t": 1.5}, "t", "expected an integer"),
+        ({"t": 2**64 - 1}, "t", "integer out of range"),
+        ({"fn": -1}, "fn", "-1 outside [0, None]"),
+        ({"p": "x"}, "p", "expected an array of 3 numbers"),
+        ({"p": [0.0, "x", 0.0]}, "p", "expected a number, got str"),
+        ({"p": [0.0, -math.inf, 0.0]}, "p", "not a finite number: -inf"),
+        ({"tsrc": "guess"}, "tsrc", "'guess' not one of echo, latency, arrival, sim"),
+        ({"name": "x" * 4097}, "name", "string longer than 4096"),
+        ({"name": b"cf1"}, "name", "expected a string, got bytes"),
+    ],
+)
+def test_mocap_pose_errors_say_what_is_wrong(mutation: dict, field: str, reason: str) -> None:
+    m = wire.MocapPose(t=1, fn=1, id=1, p=(0.0, 0.0, 0.0), q=(1.0, 0.0, 0.0, 0.0), ok=True).to_dict()
+    with pytest.raises(PayloadError) as err:
+        wire.MocapPose.decode(msgpack.packb(m | mutation, use_bin_type=True), "arena/d1/mocap")
+    assert err.value.field == field and str(err.value).startswith(reason), str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("mutation", "field", "reason"),
+    [
+        ({"fs": ["a"] * 257}, "fs", "more than 256 strings"),
+        ({"fs": ["a", 1]}, "fs", "expected an array of strings"),
+        ({"bat": 1.5}, "bat", "1.5 outside [0.0, 1.0]"),
+        ({"q": [2.0, 0.0, 0.0, 0.0]}, "q", "quaternion norm"),
+        ({"landed": "flying"}, "landed", "'flying' not one of"),
+    ],
+)
+def test_state_errors_say_what_is_wrong(mutation: dict, field: str, reason: str) -> None:
+    with pytest.raises(PayloadError) as err:
+        wire.State.decode(msgpack.packb({"t": 1} | mutation))
+    assert err.value.field == field and str(err.value).startswith(reason), str(err.value)
+
+
+def test_maps_need_string_keys() -> None:
+    with pytest.raises(PayloadError, match=r"expected a map with string keys.*field=f"):
+        wire.Telemetry.decode(msgpack.packb({"t": 1, "msg": "X", "f": {1: 2}}))
+    with pytest.raises(PayloadError, match="expected a map with string keys"):
+        wire.Telemetry.decode(msgpack.packb({"t": 1, "msg": "X", 7: 2}))
+
+
+def test_specs_come_from_the_struct_annotations() -> None:
+    specs = dict(wire.State._specs)
+    assert specs["t"] == wire.Spec("t", "int", "Time of this snapshot", unit="ns", required=True)
+    assert specs["bat"] == wire.Spec("bat", "float", "Battery remaining, 0–1", lo=0.0, hi=1.0, optional=True)
+    assert specs["landed"].choices == ("undefined", "on_ground", "in_air", "takeoff", "landing")
+    assert dict(wire.MocapPose._specs)["err"].nan_ok
+    assert wire.default_of(wire.State, "mode") == "UNKNOWN"
+    assert wire.default_of(wire.State, "fs") == ()
+    assert wire.default_of(wire.State, "p") is None
+    assert wire.default_of(wire.State, "t") is dataclasses.MISSING

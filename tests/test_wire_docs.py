@@ -13,6 +13,7 @@ from typing import Any
 
 import jsonschema
 import msgpack
+import msgspec
 import pytest
 
 from arena_common import keys, wire, wiredoc
@@ -143,6 +144,21 @@ def test_every_type_has_a_schema_file_and_vectors() -> None:
     assert {v["type"] for v in vectors} == set(wire.REGISTRY)
     for name, cls in wire.REGISTRY.items():
         assert _load(REPO / f"docs/schemas/arena.{name}.json") == wire.json_schema(cls)
+
+
+def test_schemas_agree_with_msgspecs_own_schema_of_the_structs() -> None:
+    """Ours describes the JSON rendering (NaN as null, no float64 limits); the fields, their JSON types and
+    which are required are msgspec's."""
+    for cls in wire.REGISTRY.values():
+        (_,), defs = msgspec.json.schema_components([cls])
+        theirs, ours = defs[cls.__name__], wire.json_schema(cls)
+        assert list(ours["properties"]) == list(theirs["properties"]), cls
+        assert ours["required"] == theirs.get("required", []), cls
+        for name, prop in ours["properties"].items():
+            if "type" in prop:
+                assert prop["type"] == theirs["properties"][name]["type"], (cls, name)
+            else:  # optional (anyOf the type and null) or NaN allowed (a number or null)
+                assert {"type": "null"} in prop["anyOf"], (cls, name)
 
 
 def test_wire_md_documents_every_key_type_field_and_encoding() -> None:
