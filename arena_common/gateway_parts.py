@@ -147,6 +147,7 @@ class VehicleState:
         self.on_reboot: list[Callable[[], None]] = []
         self.on_link_change: list[Callable[[bool], None]] = []
         self._text_parts: dict[int, tuple[float, int, list[str]]] = {}
+        self._text_lock = threading.Lock()  # the reader adds chunks, the supervisor flushes late ones
 
     # -- input from the reader thread -----------------------------------------------------------------
     def on_heartbeat(self, msg: Any, now: float) -> None:
@@ -236,18 +237,35 @@ class VehicleState:
         text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("ascii", "replace")
         text = text.split("\0", 1)[0]
         chunk_id = int(getattr(msg, "id", 0))
-        if chunk_id:
-            # Long texts arrive in chunks of 50 characters with the same id; the last one is shorter.
-            for old in [k for k, (t0, _, _) in self._text_parts.items() if now - t0 > 2.0]:
-                del self._text_parts[old]
-            _, _, parts = self._text_parts.setdefault(chunk_id, (now, int(msg.severity), []))
-            parts.append(text)
-            if len(text) >= 50:
-                return
-            text = "".join(parts)
-            del self._text_parts[chunk_id]
-        text = text.strip()  # PX4 ends texts it also sent as events with a tab
         sev = int(msg.severity)
+        # Long texts arrive in chunks of 50 characters, the last one shorter: with the same id, or (PX4
+        # v1.16) with id 0, one after the other at the same severity.
+        self.flush_texts(now)
+        key = chunk_id if chunk_id else -1 - sev
+        with self._text_lock:
+            if key not in self._text_parts and len(text) < 50:
+                parts = [text]
+            else:
+                _, _, parts = self._text_parts.setdefault(key, (now, sev, []))
+                parts.append(text)
+                if len(text) >= 50:
+                    return
+                del self._text_parts[key]
+        self._emit_text(sev, parts)
+
+    def flush_texts(self, now: float, after: float = 1.0) -> None:
+        """Emit the texts whose last chunk has not come within ``after`` s."""
+        with self._text_lock:
+            late = [
+                self._text_parts.pop(k)
+                for k, (t0, _, _) in list(self._text_parts.items())
+                if now - t0 > after
+            ]
+        for _, sev, parts in late:
+            self._emit_text(sev, parts)
+
+    def _emit_text(self, sev: int, parts: list[str]) -> None:
+        text = "".join(parts).strip()  # PX4 ends texts it also sent as events with a tab
         kind = "failsafe" if "failsafe" in text.lower() else "statustext"
         self.events.emit(kind, text, sev)
 
@@ -257,6 +275,7 @@ class VehicleState:
 
     def supervise(self, now: float) -> None:
         """Declare the link lost after ``link_timeout`` s without a heartbeat (the supervisor calls it)."""
+        self.flush_texts(now)
         age = self.hb_age(now)
         if self.link and age is not None and age > self.link_timeout:
             with self.cond:

@@ -20,7 +20,7 @@ from pymavlink import mavutil
 
 from arena_common import px4, wire
 from arena_common.gateway import GatewayOptions
-from arena_common.gateway_parts import EventSink, TimeSync, VisionSender
+from arena_common.gateway_parts import EventSink, TimeSync, VehicleState, VisionSender
 from arena_common.mavlink_link import (
     MSG,
     FrameSplitter,
@@ -434,3 +434,30 @@ def test_event_sink_rate_limits_by_text() -> None:
     stop.set()
     t.join(2.0)
     assert [e.text for e in published] == ["same", "other"]
+
+
+def test_statustext_chunks_are_joined_as_px4_sends_them() -> None:
+    """PX4 v1.16 splits a long text into 50-character STATUSTEXTs with id 0; MAVLink's way is a shared id."""
+    import logging
+
+    events = EventSink(None, logging.getLogger("test"))
+    state = VehicleState(1, events)
+    v2 = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def text(t: str, sev: int = 2, chunk_id: int = 0, seq: int = 0) -> Any:
+        return v2.statustext_encode(sev, t.encode(), chunk_id, seq)
+
+    long = "Arming denied: Resolve system health failures first\t"
+    state.on_statustext(text(long[:50]), 1.0)
+    state.on_statustext(text(long[50:]), 1.01)
+    state.on_statustext(text("Preflight Fail: horizontal position unstable", 3), 1.02)
+    state.on_statustext(text("x" * 50, 4, chunk_id=7, seq=0), 1.03)
+    state.on_statustext(text("y" * 10, 4, chunk_id=7, seq=1), 1.04)
+    state.on_statustext(text("z" * 50, 5), 1.05)  # its end never comes: flushed after 1 s
+    assert [e.text for e in events.recent] == [
+        "Arming denied: Resolve system health failures first",
+        "Preflight Fail: horizontal position unstable",
+        "x" * 50 + "y" * 10,
+    ]
+    state.supervise(2.5)
+    assert events.recent[-1].text == "z" * 50 and events.recent[-1].sev == 5
