@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test test-px4 lint bench soak clean
+.PHONY: setup run test test-system test-px4 lint bench soak clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -18,8 +18,13 @@ setup: $(STAMP)
 run: $(STAMP)
 	$(BIN)/arena demo deploy/sim.toml
 
+# Unit and integration tests (a few minutes); the whole-system tier and the real-PX4 tier run apart.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -m "not system and not px4"
+
+# Whole-system tests: examples, fault injection, network namespaces, security, fuzzing, the short soak.
+test-system: $(STAMP)
+	$(BIN)/python -m pytest -q -m system
 
 # The real-PX4 tier: PX4 v1.16 SITL (PX4_SITL_DIR, else ../shared/px4-sitl) flown through the arena.
 test-px4: $(STAMP)
@@ -36,7 +41,7 @@ bench: $(STAMP)
 	$(BIN)/arena bench
 
 soak: $(STAMP)
-	ARENA_SOAK=full $(BIN)/python -m pytest -q -m slow tests
+	ARENA_SOAK=full $(BIN)/python -m pytest -q tests/test_soak.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache

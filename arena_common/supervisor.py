@@ -258,7 +258,9 @@ def _load_prctl() -> Callable[..., int] | None:
 _prctl = _load_prctl()
 
 
-def _child_setup(parent_pid: int, death_signal: int) -> Callable[[], None]:
+def child_setup(parent_pid: int, death_signal: int) -> Callable[[], None]:
+    """A ``preexec_fn`` that has the child sent ``death_signal`` when ``parent_pid`` (this thread) dies."""
+
     def setup() -> None:
         # Runs in the child between fork and exec: ask for ``death_signal`` when the parent dies, and
         # handle the race where it died before this line ran.
@@ -420,7 +422,7 @@ class Supervisor:
                 stderr=subprocess.STDOUT,
                 env={**self.env, **spec.env},
                 start_new_session=True,
-                preexec_fn=_child_setup(os.getpid(), self.death_signal),
+                preexec_fn=child_setup(os.getpid(), self.death_signal),
                 close_fds=True,
             )
         except OSError as exc:

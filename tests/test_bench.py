@@ -28,7 +28,7 @@ from arena_common.bench_pipeline import (
 from arena_common.mavlink_link import mavlink2
 from tests.conftest import REPO
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.system
 
 
 def test_latency_stats_percentiles() -> None:

@@ -22,7 +22,7 @@ import pytest
 from arena_common import Arena
 from tests.conftest import REPO, free_port, wait_for, write_config
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.system, pytest.mark.timeout(300)]
 VEHICLES = ("d1", "d2", "d3")
 
 

@@ -59,7 +59,7 @@ from tests.faultlib import (
     write_arena_config,
 )
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.system
 
 HEIGHT = 1.0
 FLUSH_S = 0.5

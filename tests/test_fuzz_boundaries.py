@@ -70,6 +70,8 @@ from tests.faultlib import (
     write_arena_config,
 )
 
+pytestmark = pytest.mark.system
+
 CAPTURE = REPO / "tests" / "data" / "natnet" / "motive-2.1-natnet-3.0" / "traffic.pcapng"
 FUZZ = settings(deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck))
 

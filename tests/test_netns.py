@@ -32,7 +32,7 @@ import pytest
 
 from tests.conftest import REPO, wait_for
 
-pytestmark = [pytest.mark.netns, pytest.mark.slow]
+pytestmark = [pytest.mark.netns, pytest.mark.system]
 
 SUBNET = "10.213.7"
 ADDRESS = {"ground": f"{SUBNET}.1", "cc1": f"{SUBNET}.11", "cc2": f"{SUBNET}.12", "user": f"{SUBNET}.21"}

@@ -28,7 +28,7 @@ from arena_common.frames import quat_angle, quat_from_euler
 from arena_common.natnet_server import ANGLE_NOISE_PER_M
 from tests.conftest import REPO, wait_for, write_config
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.system
 
 NOISE_M = 0.0003
 MOCAP_HZ, VISION_HZ = 180.0, 50.0

@@ -31,6 +31,8 @@ from arena_common.security import (
 )
 from tests.conftest import free_port, wait_for
 
+pytestmark = pytest.mark.system
+
 LAB = """
 [zenoh]
 connect = ["{ep}"]

@@ -51,7 +51,7 @@ from arena_common.bus import Subscription
 from tests.conftest import wait_for
 from tests.faultlib import RESULTS_DIR, ArenaUp, Watch, peer_bus, rss_bytes, write_arena_config
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.system
 
 FULL = os.environ.get("ARENA_SOAK", "") == "full"
 SHORT_VEHICLES = 6

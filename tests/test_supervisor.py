@@ -382,7 +382,7 @@ def _missing_services() -> list[str]:
     return [m for m in REAL_MODULES if importlib.util.find_spec(m) is None]
 
 
-@pytest.mark.slow
+@pytest.mark.system
 @pytest.mark.skipif(bool(_missing_services()), reason=f"services not written yet: {_missing_services()}")
 def test_arena_up_runs_restarts_and_stops_the_real_services(tmp_path: Path) -> None:
     """`arena up` on a private config: the chain flows, kill -9 of each child is repaired, Ctrl-C ends all."""
@@ -520,3 +520,57 @@ def test_sim_world_runs_both_parts_and_stops(tmp_path: Path, router_endpoint: st
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def _processes_of(config: Path) -> list[str]:
+    """Command lines of the processes that name ``config``."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if str(config) in cmd:
+            found.append(f"{entry.name}: {cmd.strip()}")
+    return found
+
+
+@pytest.mark.system
+def test_closing_the_terminal_stops_the_demo_and_every_process(tmp_path: Path, router_endpoint: str) -> None:
+    """`make run` in a terminal that is then closed (SIGHUP): nothing of the arena is left running."""
+    import pty
+
+    cfg = write_config(tmp_path, router_endpoint, n_vehicles=1)
+    arena = Path(sys.executable).parent / "arena"
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: the demo on a terminal of its own
+        os.chdir(tmp_path)
+        os.execv(str(arena), [str(arena), "demo", str(cfg), "--log", str(tmp_path / "demo.log")])
+    try:
+        out = bytearray()
+
+        def started() -> bool:
+            import select
+
+            while select.select([fd], [], [], 0.05)[0]:
+                try:
+                    out.extend(os.read(fd, 65536))
+                except OSError:
+                    break
+            return b"arena starting" in out and len(_processes_of(cfg)) >= 4
+
+        wait_for(started, timeout=60, interval=0.1, what="the demo and its services running")
+        os.close(fd)  # the terminal window closes
+        wait_for(lambda: not _processes_of(cfg), timeout=60, interval=0.2, what="every process gone")
+        _, status = os.waitpid(pid, 0)
+        assert os.WIFEXITED(status) or os.WIFSIGNALED(status)
+    finally:
+        for line in _processes_of(cfg):
+            os.kill(int(line.split(":", 1)[0]), signal.SIGKILL)
+        try:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+        except (ProcessLookupError, ChildProcessError):
+            pass

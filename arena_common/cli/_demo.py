@@ -7,6 +7,7 @@ everything.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -27,6 +28,7 @@ from arena_common.client import Arena, Swarm, Vehicle
 from arena_common.config import ArenaConfig
 from arena_common.errors import ArenaError
 from arena_common.options import ConfigOpt, config_path, load_config
+from arena_common.supervisor import child_setup
 
 console = Console()
 
@@ -105,11 +107,17 @@ def demo(
         console.print(f"[red]error:[/] {path} names no host to run")
         raise typer.Exit(2)
     logf = open(log, "ab")  # noqa: SIM115 - kept open for the child's lifetime
+    # A closed terminal (SIGHUP) or a kill (SIGTERM) ends the demo as Ctrl-C does: land, stop the arena.
+    # The supervisor runs in its own session (the terminal's signals reach the demo alone) and is told
+    # to stop (SIGTERM) should the demo die without stopping it.
+    for sig in (signal.SIGHUP, signal.SIGTERM):
+        signal.signal(sig, signal.default_int_handler)
     up = subprocess.Popen(
         [sys.executable, "-m", "arena_common.cli", "up", str(path), "--host", host],
         stdout=logf,
         stderr=subprocess.STDOUT,
         start_new_session=True,
+        preexec_fn=child_setup(os.getpid(), signal.SIGTERM),
     )
     say: list[str] = [f"arena starting (pid {up.pid}, logs in {log})"]
     stop = threading.Event()
@@ -150,7 +158,8 @@ def demo(
                 live.update(view())
             live.update(view())
     except KeyboardInterrupt:
-        console.print("stopping: landing every vehicle")
+        with contextlib.suppress(OSError):  # the terminal may be gone
+            console.print("stopping: landing every vehicle")
         stop.set()
         try:
             arena.estop(reason="demo interrupted")
