@@ -334,16 +334,21 @@ PX4_DEFAULTS: Final[Mapping[str, tuple[ParamValue, int]]] = {
 #: arena's safety set-up (land at critical battery, land on RC loss).  EKF2_NOAID_TOUT 1 s: when mocap
 #: stops, PX4 dead-reckons for this long before it declares its position invalid and fails safe (5 s by
 #: default: in a 7 × 4 m room the vehicle left it in 4 of 6 tries; with 1 s it moved 0.24–0.54 m);
-#: COM_POSCTL_NAVL 1 lands (descends) on position loss in Position mode too.  EKF2_EV_DELAY and the vision
-#: noise were chosen by measurement against PX4 SITL (docs/px4.md): the arena stamps the camera's
-#: mid-exposure time, which PX4 maps with TIMESYNC, so EKF2_EV_DELAY holds only what the stamps miss.
+#: COM_POSCTL_NAVL 1 lands (descends) on position loss in Position mode too.  EKF2_EV_DELAY 0 ms and
+#: EKF2_EVP_NOISE 0.02 m were chosen by measurement against PX4 SITL (docs/px4.md, tests/px4/tune_vision.py):
+#: the arena stamps the camera's mid-exposure time, which PX4 maps with TIMESYNC, so EKF2_EV_DELAY holds only
+#: what the stamps miss (the original arena's 20 ms, measured with arrival stamps, would count the delay
+#: twice); PX4's default 0.1 m noise let its estimate trail the truth by 260–440 ms and the vehicle wander
+#: 33–36 cm around a held point, 0.02 m: 160–170 ms and 5–13 cm; 0.01 m jittered more (14–20 cm).
 ARENA_REQUIRED_PARAMS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "EKF2_EV_CTRL": (15, _I),
     "EKF2_HGT_REF": (3, _I),
     "EKF2_GPS_CTRL": (0, _I),
     "EKF2_MAG_TYPE": (5, _I),
     "EKF2_BARO_CTRL": (1, _I),
-    "EKF2_EV_DELAY": (20.0, _F),
+    "EKF2_EV_DELAY": (0.0, _F),
+    "EKF2_EVP_NOISE": (0.02, _F),
+    "EKF2_EVA_NOISE": (0.05, _F),
     "EKF2_NOAID_TOUT": (1_000_000, _I),
     "COM_POSCTL_NAVL": (1, _I),
     "COM_OBL_RC_ACT": (4, _I),
