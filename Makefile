@@ -31,14 +31,15 @@ test-px4: $(STAMP)
 	$(BIN)/python -m pytest -q -m px4 tests/px4
 
 lint: $(STAMP)
-	$(BIN)/ruff check arena_common services tests examples
-	$(BIN)/ruff format --check arena_common services tests examples
+	$(BIN)/ruff check arena_common services tests examples bench tools
+	$(BIN)/ruff format --check arena_common services tests examples bench tools
 	$(BIN)/mypy
-	$(BIN)/python -m arena_common.wiredoc --check
+	$(BIN)/python -m tools.wiredoc --check
+	$(BIN)/python -m tools.layers
 
 bench: $(STAMP)
 	$(BIN)/python -m pip install -q -e '.[bench]'
-	$(BIN)/arena bench
+	$(BIN)/python -m bench
 
 soak: $(STAMP)
 	ARENA_SOAK=full $(BIN)/python -m pytest -q tests/test_soak.py

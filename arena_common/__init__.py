@@ -5,10 +5,10 @@ The names a user program needs are re-exported here::
     from arena_common import Arena, Vehicle, CommandRejected
 """
 
-from arena_common.client import Arena, OffboardStream, Swarm, Vehicle
-from arena_common.config import ArenaConfig
-from arena_common.config import load as load_config
-from arena_common.errors import (
+from arena_common.client.vehicle import Arena, OffboardStream, Swarm, Vehicle
+from arena_common.core.config import ArenaConfig
+from arena_common.core.config import load as load_config
+from arena_common.core.errors import (
     ArenaError,
     BusError,
     CommandError,

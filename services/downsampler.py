@@ -1,7 +1,7 @@
 """Downsampler: ``arena/<drone>/pose`` (full mocap rate) → ``arena/<drone>/vision`` at the vision rate.
 
 One process per vehicle (``--vehicle NAME``), running that vehicle's
-:class:`~arena_common.vision.VisionFilter` (validity, jump gate, time decimation; nothing is ever sent
+:class:`~arena_common.pipeline.vision.VisionFilter` (validity, jump gate, time decimation; nothing is ever sent
 twice, nothing without an input). The frame transform can run the same filter in-process instead
 (``[pipeline] decimate = "transform"``), which saves this process and its hop.
 
@@ -20,12 +20,13 @@ from typing import Annotated
 
 import typer
 
-from arena_common import keys, wire
-from arena_common.bus import BusOptions
-from arena_common.config import ArenaConfig
-from arena_common.errors import ConfigError
-from arena_common.filters import FilterError
-from arena_common.options import (
+from arena_common.bus.session import BusOptions
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError
+from arena_common.geometry.filters import FilterError
+from arena_common.pipeline.vision import VisionFilter, account
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -36,8 +37,7 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.service import running, setup_logging
-from arena_common.vision import VisionFilter, account
+from arena_common.runtime.service import running, setup_logging
 
 SERVICE = "downsampler"
 QUEUE_CAPACITY = 16  # ≈ 90 ms of input at 180 Hz

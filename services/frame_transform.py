@@ -1,9 +1,9 @@
 """Frame transform: ``arena/*/mocap`` (Motive's frame) → ``arena/<drone>/pose`` (arena NED/FRD), full rate.
 
-Every :class:`~arena_common.wire.MocapPose` is converted with one precomputed
-:class:`~arena_common.frames.FrameTransform` (``mocap.up_axis`` then the ``[calibration]`` table) and
-republished as a :class:`~arena_common.wire.Pose` on the same vehicle's ``pose`` key, with linear and
-angular velocity from a :class:`~arena_common.filters.VelocityEstimator` per vehicle. The measurement time
+Every :class:`~arena_common.core.wire.MocapPose` is converted with one precomputed
+:class:`~arena_common.geometry.frames.FrameTransform` (``mocap.up_axis`` then the ``[calibration]`` table) and
+republished as a :class:`~arena_common.core.wire.Pose` on the same vehicle's ``pose`` key, with linear and
+angular velocity from a :class:`~arena_common.geometry.filters.VelocityEstimator` per vehicle. The measurement time
 ``t`` and Motive's frame number ``fn`` are carried through; ``tp`` is the publish time.
 
 Bodies Motive lost (``ok`` false) are passed on with ``ok=False`` so that consumers see the loss; they
@@ -11,7 +11,7 @@ restart the vehicle's velocity estimate and are never made valid here. Undecodab
 under ``rejected`` in the service's stats and skipped.
 
 With ``[pipeline] decimate = "transform"`` it also runs each configured vehicle's
-:class:`~arena_common.vision.VisionFilter` (what the downsampler process does otherwise) and publishes
+:class:`~arena_common.pipeline.vision.VisionFilter` (what the downsampler process does otherwise) and publishes
 ``arena/<drone>/vision`` at the vehicle's ``vision_rate``: one process and one hop less per vehicle.
 
 Samples arrive one per key, so the per-pose path uses plain float math (several times cheaper than numpy
@@ -27,12 +27,13 @@ from dataclasses import dataclass, field
 
 import typer
 
-from arena_common import keys, wire
-from arena_common.bus import BusOptions, Publisher
-from arena_common.config import ArenaConfig
-from arena_common.filters import VelocityEstimator
-from arena_common.frames import IDENTITY_QUAT, Calibration, FrameError, FrameTransform, UpAxis
-from arena_common.options import (
+from arena_common.bus.session import BusOptions, Publisher
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.geometry.filters import VelocityEstimator
+from arena_common.geometry.frames import IDENTITY_QUAT, Calibration, FrameError, FrameTransform, UpAxis
+from arena_common.pipeline.vision import VisionFilter, account
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -43,8 +44,7 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.service import Service, running, setup_logging
-from arena_common.vision import VisionFilter, account
+from arena_common.runtime.service import Service, running, setup_logging
 
 SERVICE = "transform"
 SUBSCRIPTION = "arena/*/mocap"
@@ -83,7 +83,7 @@ class PoseConverter:
         return est
 
     def convert(self, drone: str, m: wire.MocapPose, tp: int | None = None) -> wire.Pose:
-        """Convert one sample of ``drone``; raises :class:`~arena_common.frames.FrameError` on bad numbers.
+        """Convert one sample of ``drone``; raises :class:`~arena_common.geometry.frames.FrameError` on bad numbers.
 
         A valid sample needs a unit quaternion (to within 1 %). An invalid one (``ok`` false) keeps its
         converted position, and its converted attitude when the quaternion is usable (identity otherwise),

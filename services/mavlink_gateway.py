@@ -4,7 +4,7 @@ Vision poses (``arena/<drone>/vision``) go to the autopilot as ODOMETRY; its sta
 come back (``arena/<drone>/state``, ``…/telemetry/<MSG>``, ``…/events``); commands are served on
 ``arena/<drone>/cmd``, offboard setpoints streamed from ``arena/<drone>/setpoint`` under leases and the
 arena's safety rules, and ``arena/estop`` lands (or kills) the vehicle.  See
-:mod:`arena_common.gateway`.
+:mod:`arena_common.gateway.gateway`.
 """
 
 from __future__ import annotations
@@ -14,12 +14,13 @@ from typing import Annotated
 
 import typer
 
-from arena_common.bus import BusOptions
-from arena_common.config import ArenaConfig
-from arena_common.errors import ConfigError
-from arena_common.gateway import Gateway, GatewayOptions
-from arena_common.gateway_parts import GatewayError, parse_origin
-from arena_common.options import (
+from arena_common.bus.session import BusOptions
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError, GatewayError
+from arena_common.gateway.gateway import Gateway, GatewayOptions
+from arena_common.gateway.origin import parse_origin
+from arena_common.mavlink.signing import vehicle_key
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -30,8 +31,7 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.service import running, setup_logging
-from arena_common.signing import vehicle_key
+from arena_common.runtime.service import running, setup_logging
 
 SERVICE = "gateway"
 

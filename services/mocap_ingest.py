@@ -1,8 +1,8 @@
 """Mocap ingest: rigid bodies from Motive (or another source) → ``arena/<drone>/mocap``, one key per vehicle.
 
 Reads frames from the source ``mocap.source`` names (NatNet by default, see
-:mod:`arena_common.mocap_sources`), maps each rigid body to its vehicle by the name or id the config gives
-(``vehicles.<name>.rigid_body``) and publishes a :class:`~arena_common.wire.MocapPose` per body and frame,
+:mod:`arena_common.mocap.sources`), maps each rigid body to its vehicle by the name or id the config gives
+(``vehicles.<name>.rigid_body``) and publishes a :class:`~arena_common.core.wire.MocapPose` per body and frame,
 still in Motive's frame, with its measurement time. Untracked bodies are published with ``ok=False``;
 bodies no vehicle claims are counted and, with ``mocap.publish_unknown``, published on
 ``arena/sys/bodies/<body>``. Every problem the source meets is counted in the service's stats under its
@@ -18,14 +18,14 @@ import time
 
 import typer
 
-from arena_common import keys, wire
-from arena_common.bus import BusOptions, Publisher
-from arena_common.config import ArenaConfig
-from arena_common.errors import InvalidName
-from arena_common.mocap_sources import MocapSource, open_source
-from arena_common.natnet import RigidBody
-from arena_common.natnet_client import MocapError, TimedFrame
-from arena_common.options import (
+from arena_common.bus.session import BusOptions, Publisher
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import InvalidName
+from arena_common.mocap.client import MocapError, TimedFrame
+from arena_common.mocap.natnet import RigidBody
+from arena_common.mocap.sources import MocapSource, open_source
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -36,7 +36,7 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.service import Service, running, setup_logging
+from arena_common.runtime.service import Service, running, setup_logging
 
 MAX_UNKNOWN_KEYS = 256  # publishers created for unclaimed bodies, at most
 _BAD_KEY_CHARS = re.compile(r"[^A-Za-z0-9_.\-]")
@@ -77,7 +77,7 @@ def encode_pose(
     tsrc: str,
     tp: int,
 ) -> bytes:
-    """The msgpack bytes of the :class:`~arena_common.wire.MocapPose` for ``body`` (Motive's x, y, z, w
+    """The msgpack bytes of the :class:`~arena_common.core.wire.MocapPose` for ``body`` (Motive's x, y, z, w
     quaternion becomes the wire's w, x, y, z). An untracked body's pose is kept when finite, else zeroed
     (receivers refuse non-finite numbers); an unknown or non-finite marker error is sent as NaN."""
     qx, qy, qz, qw = body.quat_xyzw

@@ -1,8 +1,8 @@
 """PX4 SITL: a real PX4 v1.16 autopilot (SIH simulator) for one ``autopilot = "px4-sitl"`` vehicle.
 
 ``arena up`` runs one per PX4 SITL vehicle, on the host that runs the vehicle's gateway (PX4 SITL talks
-on loopback only).  It boots instance ``px4_instance`` (:class:`~arena_common.px4_sitl.Px4Sitl`) with
-the boot parameters :func:`~arena_common.px4_sitl.arena_boot_params` gives for ``sim.px4_params``
+on loopback only).  It boots instance ``px4_instance`` (:class:`~arena_common.runtime.px4_sitl.Px4Sitl`) with
+the boot parameters :func:`~arena_common.runtime.px4_sitl.arena_boot_params` gives for ``sim.px4_params``
 ("arena": as ``arena px4 setup`` leaves a lab's vehicle; "px4": PX4's defaults) and the vehicle's own
 ``px4_params``; PX4's lines are printed as they come (``arena up`` prefixes them ``[px4_sitl.<d>]``).
 
@@ -22,10 +22,10 @@ from typing import Annotated
 
 import typer
 
-from arena_common.bus import BusOptions
-from arena_common.config import ArenaConfig, VehicleSpec
-from arena_common.errors import ConfigError
-from arena_common.options import (
+from arena_common.bus.session import BusOptions
+from arena_common.core.config import ArenaConfig, VehicleSpec
+from arena_common.core.errors import ConfigError
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -36,8 +36,8 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.px4_sitl import Px4Sitl, Px4SitlError, arena_boot_params
-from arena_common.service import running, setup_logging
+from arena_common.runtime.px4_sitl import Px4Sitl, Px4SitlError, arena_boot_params
+from arena_common.runtime.service import running, setup_logging
 
 SERVICE = "px4_sitl"
 REBOOT_DELAY = 0.5  # s between px4 exiting and booting again
@@ -80,7 +80,7 @@ def main(
     ready_timeout: float = 60.0,
 ) -> None:
     """Run ``vehicle``'s PX4 SITL instance until ``stop`` is set (or SIGINT/SIGTERM), booting it again
-    whenever it exits.  :class:`~arena_common.px4_sitl.Px4SitlError` when it cannot start (no build,
+    whenever it exits.  :class:`~arena_common.runtime.px4_sitl.Px4SitlError` when it cannot start (no build,
     instance already running, boot failure)."""
     spec = sitl_vehicle(cfg, vehicle)
     assert spec.px4_instance is not None

@@ -3,8 +3,8 @@
 PX4 SITL instance *N* sends its simulator's ground truth to 127.0.0.1:19410+N — latitude, longitude
 (1e-7 °), altitude (mm) and the attitude quaternion, body FRD → NED — at 25 Hz; this service asks for
 ``--rate`` (default 100 Hz) with SET_MESSAGE_INTERVAL and asks again whenever the rate falls (px4
-booted again).  Each sample becomes a :class:`~arena_common.wire.Pose` in the arena frame: the position
-relative to SIH's home (:func:`~arena_common.px4_sitl.sih_home`: the floor is z = 0), turned by the
+booted again).  Each sample becomes a :class:`~arena_common.core.wire.Pose` in the arena frame: the position
+relative to SIH's home (:func:`~arena_common.runtime.px4_sitl.sih_home`: the floor is z = 0), turned by the
 vehicle's ``sim.yaw_deg`` and moved to its ``sim.start``; the quaternion (already NED/FRD) turned by the
 same yaw.  The Motive emulator (``services.sim_mocap``) streams it as NatNet, so the arena's whole real
 pipeline (ingest → transform → downsampler → gateway) flies PX4 unchanged.
@@ -27,12 +27,12 @@ from typing import Annotated, Any
 import typer
 from pymavlink import mavutil
 
-from arena_common import keys, wire
-from arena_common.bus import BusOptions
-from arena_common.config import ArenaConfig
-from arena_common.errors import ConfigError
-from arena_common.frames import quat_canonical, quat_from_yaw, quat_multiply, quat_normalize
-from arena_common.options import (
+from arena_common.bus.session import BusOptions
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError
+from arena_common.geometry.frames import quat_canonical, quat_from_yaw, quat_multiply, quat_normalize
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -43,8 +43,8 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.px4_sitl import Px4SitlError, find_build, ports, sih_home
-from arena_common.service import running, setup_logging
+from arena_common.runtime.px4_sitl import Px4SitlError, find_build, ports, sih_home
+from arena_common.runtime.service import running, setup_logging
 from services.px4_sitl import boot_params, sitl_vehicle
 
 SERVICE = "px4_truth"

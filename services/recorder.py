@@ -1,7 +1,7 @@
 """Telemetry recorder: every sample on ``recorder.keys`` (default ``arena/**``) into MCAP files.
 
 Samples go from Zenoh's callbacks through one bounded FIFO to this loop, which writes them (see
-:mod:`arena_common.recording`); if the disk falls behind, the FIFO drops and the drops are written into
+:mod:`arena_common.recording.mcap`); if the disk falls behind, the FIFO drops and the drops are written into
 the file.  The file is flushed and fsynced every ``recorder.flush_s``, split by ``split_mb`` /
 ``split_s``, and a new one starts per experiment: ``arena rec start NAME`` / ``arena rec stop`` query
 ``arena/sys/rec/<host>`` (ops ``start`` {name}, ``stop``, ``ping``), or on arming with ``auto_on_arm``.
@@ -17,10 +17,11 @@ from typing import Annotated, Any
 import typer
 import zenoh
 
-from arena_common import keys
-from arena_common.bus import BusOptions, Channel, Received, Subscription
-from arena_common.config import ArenaConfig
-from arena_common.options import (
+from arena_common.bus.session import BusOptions, Channel, Received, Subscription
+from arena_common.core import keys
+from arena_common.core.config import ArenaConfig
+from arena_common.recording.mcap import Recorder, Sample
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -31,8 +32,7 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.recording import Recorder, Sample
-from arena_common.service import running, setup_logging
+from arena_common.runtime.service import running, setup_logging
 
 QUEUE_CAPACITY = 50_000  # samples; ≈10 s of a busy arena
 

@@ -7,7 +7,7 @@ inverse of the arena calibration) and streamed at ``sim.mocap_rate`` on a drift-
 ``sim.noise_m`` noise, ``sim.dropout`` dropped frames (seed ``sim.seed``), Motive-like latency and
 occlusions (``--occlude d1:2.0:0.5``: d1 hidden 2 s after start for 0.5 s). A body is defined and streamed
 from the start, **untracked** (bit 0 clear, zero pose) until its first true pose, and again when its true
-pose is older than :data:`~arena_common.natnet_server.TRUTH_TIMEOUT` or says ``ok=False``: Motive does the
+pose is older than :data:`~arena_common.sim.natnet_server.TRUTH_TIMEOUT` or says ``ok=False``: Motive does the
 same for a defined rigid body the cameras do not see.
 
 Replay (``--replay FILE``, pcap/pcapng or JSON lines): the frames are sent at their recorded timing
@@ -19,7 +19,7 @@ service returns when the replay ends.
 Clients: the server listens on ``mocap.server``:``mocap.command_port`` and streams to the group
 ``mocap.group``:``mocap.data_port`` (``mocap.multicast``), or by unicast as Motive serves each generation of
 client: NatNet 4 SDK clients on the socket that sent CONNECT, from the data port; older clients
-(libmotioncapture, NatNet SDK 3.x) on the data port of their address (:mod:`arena_common.natnet_sessions`).
+(libmotioncapture, NatNet SDK 3.x) on the data port of their address (:mod:`arena_common.sim.natnet_sessions`).
 
 Stats (every second): ``frames`` sent, ``dropped``, ``occluded`` and ``untracked`` body-frames, ``late``
 frames skipped because the loop fell behind, ``truth`` poses received, ``clients`` connected (a level).
@@ -35,14 +35,26 @@ from typing import Annotated
 
 import typer
 
-from arena_common import keys, wire
-from arena_common.bus import BusOptions
-from arena_common.capture import CaptureError
-from arena_common.config import ArenaConfig
-from arena_common.errors import ConfigError, InvalidName
-from arena_common.frames import Calibration, FrameError, FrameTransform, UpAxis
-from arena_common.natnet import ModelDefs, NatNetError, RigidBodyDef, Version
-from arena_common.natnet_server import (
+from arena_common.bus.session import BusOptions
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError, InvalidName
+from arena_common.geometry.frames import Calibration, FrameError, FrameTransform, UpAxis
+from arena_common.mocap.capture import CaptureError
+from arena_common.mocap.natnet import ModelDefs, NatNetError, RigidBodyDef, Version
+from arena_common.runtime.options import (
+    ConfigOpt,
+    ConnectOpt,
+    HostOpt,
+    ListenOpt,
+    LogOpt,
+    ModeOpt,
+    ZConfigOpt,
+    bus_options,
+    load_config,
+)
+from arena_common.runtime.service import Service, running, setup_logging
+from arena_common.sim.natnet_server import (
     CAMERA_LATENCY,
     SOFTWARE_LATENCY,
     TRUTH_TIMEOUT,
@@ -55,18 +67,6 @@ from arena_common.natnet_server import (
     load_recording,
     sleep_until,
 )
-from arena_common.options import (
-    ConfigOpt,
-    ConnectOpt,
-    HostOpt,
-    ListenOpt,
-    LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
-from arena_common.service import Service, running, setup_logging
 
 SERVICE = "sim_mocap"
 VERSIONS = ("3.0", "3.1", "4.0", "4.1")

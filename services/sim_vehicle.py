@@ -1,10 +1,10 @@
 """Simulated PX4 vehicles: the configured vehicles as simulated autopilots, their true poses on Zenoh.
 
 Each ``autopilot = "sim"`` vehicle of the config (or each one named with ``--vehicle``) becomes a
-:class:`~arena_common.sim_autopilot.SimAutopilot` on the mirror of its gateway's MAVLink connection
-(:meth:`~arena_common.config.VehicleSpec.sim_mavlink`), starting on the floor at ``sim.start`` heading
+:class:`~arena_common.sim.autopilot.SimAutopilot` on the mirror of its gateway's MAVLink connection
+(:meth:`~arena_common.core.config.VehicleSpec.sim_mavlink`), starting on the floor at ``sim.start`` heading
 ``sim.yaw_deg``, with system id ``system_id``. All of them run in one thread. Every physics tick (or at
-``--truth-rate``) each true pose is published as a :class:`~arena_common.wire.Pose` on
+``--truth-rate``) each true pose is published as a :class:`~arena_common.core.wire.Pose` on
 ``arena/<name>/truth`` for the Motive emulator; its time ``t`` is the simulated clock, which reads like
 the wall clock at ``--speed 1``.  A vehicle whose config names a ``signing_key_file`` signs its MAVLink
 and refuses unsigned or replayed input, as PX4 with signing required does.
@@ -19,11 +19,13 @@ from typing import Annotated
 
 import typer
 
-from arena_common import keys, px4, wire
-from arena_common.bus import BusOptions, Publisher
-from arena_common.config import ArenaConfig
-from arena_common.errors import ConfigError
-from arena_common.options import (
+from arena_common.bus.session import BusOptions, Publisher
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError
+from arena_common.mavlink import px4
+from arena_common.mavlink.signing import vehicle_key
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -34,9 +36,8 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.service import running, setup_logging
-from arena_common.signing import vehicle_key
-from arena_common.sim_autopilot import SimAutopilot, SimAutopilotError, SimClock, TruePose, run_autopilots
+from arena_common.runtime.service import running, setup_logging
+from arena_common.sim.autopilot import SimAutopilot, SimAutopilotError, SimClock, TruePose, run_autopilots
 
 SERVICE = "sim_vehicle"
 PHYSICS_RATE = 250.0  # Hz, the simulated autopilots' physics tick
@@ -90,7 +91,7 @@ def build_autopilots(cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = (
 
 
 def truth_pose(pose: TruePose) -> wire.Pose:
-    """A simulated vehicle's true pose as a :class:`~arena_common.wire.Pose`."""
+    """A simulated vehicle's true pose as a :class:`~arena_common.core.wire.Pose`."""
     return wire.Pose(
         t=pose.time_ns,
         p=pose.position,

@@ -14,9 +14,9 @@ from typing import Annotated
 
 import typer
 
-from arena_common.bus import BusOptions
-from arena_common.config import ArenaConfig
-from arena_common.options import (
+from arena_common.bus.session import BusOptions
+from arena_common.core.config import ArenaConfig
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -27,7 +27,7 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.supervisor import Supervisor, sim_world_plan, supervise
+from arena_common.runtime.supervisor import Supervisor, sim_world_plan, supervise
 
 
 def main(

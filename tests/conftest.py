@@ -10,9 +10,9 @@ from typing import Any
 
 import pytest
 
-from arena_common import config as config_mod
-from arena_common.bus import Bus, BusOptions, open_bus
-from arena_common.config import ArenaConfig, ZenohSpec
+from arena_common.bus.session import Bus, BusOptions, open_bus
+from arena_common.core import config as config_mod
+from arena_common.core.config import ArenaConfig, ZenohSpec
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -39,10 +39,11 @@ from typing import IO, Any
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from arena_common import keys, px4, wire
-from arena_common.bus import Bus, BusOptions, open_bus
-from arena_common.config import ArenaConfig, ArenaSpec, ZenohSpec
-from arena_common.sim_autopilot import AutopilotLoop, SimAutopilot, SimClock, TruePose
+from arena_common.bus.session import Bus, BusOptions, open_bus
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig, ArenaSpec, ZenohSpec
+from arena_common.mavlink import px4
+from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock, TruePose
 from tests.conftest import REPO, free_port, wait_for
 
 PYTHON = sys.executable

@@ -1,4 +1,4 @@
-"""``arena bench`` keeps working: a tiny run of every part at the smallest load, and its analysis pieces.
+"""``make bench`` keeps working: a tiny run of every part at the smallest load, and its analysis pieces.
 
 No figure is judged here (a shared machine's timings say nothing); what is checked is that the harness
 starts the real processes, matches every ODOMETRY to its frame, counts, and writes its result and tables.
@@ -13,10 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from arena_common import bench, px4
-from arena_common.bench_floor import HEADER
-from arena_common.bench_harness import BenchError, latency_stats
-from arena_common.bench_pipeline import (
+from arena_common.mavlink import px4
+from arena_common.mavlink.link import mavlink2
+from bench import run as bench
+from bench.floor import HEADER
+from bench.harness import BenchError, latency_stats
+from bench.pipeline import (
     _f32,
     _FrameInfo,
     analyze_arena,
@@ -25,7 +27,6 @@ from arena_common.bench_pipeline import (
     odometry_of,
     payload_sizes,
 )
-from arena_common.mavlink_link import mavlink2
 from tests.conftest import REPO
 
 pytestmark = pytest.mark.system

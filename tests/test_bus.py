@@ -1,9 +1,9 @@
 import threading
 from collections.abc import Callable
 
-from arena_common import keys, wire
-from arena_common.bus import Bus, Channel
-from arena_common.service import running
+from arena_common.bus.session import Bus, Channel
+from arena_common.core import keys, wire
+from arena_common.runtime.service import running
 from tests.conftest import wait_for
 
 POSE = wire.Pose(t=1, p=(0.0, 0.0, -1.0), q=(1.0, 0.0, 0.0, 0.0), ok=True)

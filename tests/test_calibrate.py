@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from arena_common import config as config_mod
-from arena_common import keys, wire
-from arena_common.bus import Bus
+from arena_common.bus.session import Bus
 from arena_common.cli import app
 from arena_common.cli._calibrate import CalibrateError, parse_mark, read_points_csv, update_calibration_text
-from arena_common.frames import Calibration
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.geometry.frames import Calibration
 from tests.conftest import REPO, wait_for, write_config
 
 runner = CliRunner()

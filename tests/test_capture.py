@@ -15,8 +15,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from arena_common import natnet
-from arena_common.capture import (
+from arena_common.mocap import natnet
+from arena_common.mocap.capture import (
     CaptureError,
     RecordedFrame,
     UdpDatagram,

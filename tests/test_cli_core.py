@@ -12,10 +12,10 @@ from pathlib import Path
 
 from typer.testing import CliRunner
 
-from arena_common import keys, wire
-from arena_common.bus import open_bus
+from arena_common.bus.session import open_bus
 from arena_common.cli import app
-from arena_common.config import ZenohSpec
+from arena_common.core import keys, wire
+from arena_common.core.config import ZenohSpec
 from tests.conftest import REPO, free_port, wait_for
 
 runner = CliRunner()

@@ -2,8 +2,8 @@ from pathlib import Path
 
 import pytest
 
-from arena_common import config
-from arena_common.errors import ConfigError
+from arena_common.core import config
+from arena_common.core.errors import ConfigError
 from tests.conftest import REPO
 
 BASE = """

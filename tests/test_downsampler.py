@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from arena_common import keys, wire
-from arena_common.bus import Bus, Received
+from arena_common.bus.session import Bus, Received
 from arena_common.cli import app
-from arena_common.config import ArenaConfig
-from arena_common.vision import VELOCITY_SETTLE_S, Outcome, VisionFilter
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.pipeline.vision import VELOCITY_SETTLE_S, Outcome, VisionFilter
 from services import downsampler
 from tests.conftest import REPO, wait_for, write_config
 from tests.test_frame_transform import service_thread

@@ -31,13 +31,13 @@ from typing import Any
 
 import pytest
 
-from arena_common import config as config_mod
-from arena_common import keys, wire
-from arena_common.bus import Bus
-from arena_common.client import Arena
-from arena_common.config import ArenaConfig
-from arena_common.errors import BusError
-from arena_common.recording import RecordingReader
+from arena_common.bus.session import Bus
+from arena_common.client.vehicle import Arena
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import BusError
+from arena_common.recording.mcap import RecordingReader
 from tests.conftest import REPO, free_port, wait_for
 from tests.faultlib import (
     PYTHON,

@@ -7,14 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from arena_common.filters import (
+from arena_common.geometry.filters import (
     FilterError,
     JumpGate,
     RejectReason,
     TimeDecimator,
     VelocityEstimator,
 )
-from arena_common.frames import quat_from_axis_angle, quat_from_euler, quat_from_yaw, quat_multiply
+from arena_common.geometry.frames import quat_from_axis_angle, quat_from_euler, quat_from_yaw, quat_multiply
 
 MS = 1_000_000  # ns
 

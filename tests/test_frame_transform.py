@@ -16,10 +16,10 @@ from typing import Any
 
 import pytest
 
-from arena_common import keys, wire
-from arena_common.bus import Bus, Subscription
-from arena_common.config import ArenaConfig, CalibrationSpec
-from arena_common.frames import quat_angle, quat_from_axis_angle, quat_from_euler
+from arena_common.bus.session import Bus, Subscription
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig, CalibrationSpec
+from arena_common.geometry.frames import quat_angle, quat_from_axis_angle, quat_from_euler
 from services import frame_transform
 from tests.conftest import REPO, wait_for, write_config
 
@@ -279,9 +279,9 @@ def test_decimates_into_vision_when_configured(
 def test_decimating_transform_replaces_the_downsampler_processes(
     tmp_path: Path, router_endpoint: str
 ) -> None:
-    from arena_common.config import load
-    from arena_common.errors import ConfigError
-    from arena_common.supervisor import plan
+    from arena_common.core.config import load
+    from arena_common.core.errors import ConfigError
+    from arena_common.runtime.supervisor import plan
 
     cfg = load(write_config(tmp_path, router_endpoint, 2, DECIMATE_IN_TRANSFORM))
     assert cfg.hosts["test"].vehicle_services == ("gateway",)

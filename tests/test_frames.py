@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from arena_common.frames import (
+from arena_common.geometry.frames import (
     Calibration,
     CalibrationError,
     FrameError,

@@ -48,16 +48,17 @@ import services.mavlink_gateway
 import services.mocap_ingest
 import services.recorder
 import services.sim_mocap
-from arena_common import config as config_mod
-from arena_common import keys, natnet, wire
-from arena_common.bus import Bus
+from arena_common.bus.session import Bus
 from arena_common.cli import app as arena_app
-from arena_common.client import Arena
-from arena_common.config import ArenaConfig
-from arena_common.errors import ConfigError
-from arena_common.mavlink_link import mavlink2
-from arena_common.natnet_server import TickClock, load_recording
-from arena_common.wire import Spec
+from arena_common.client.vehicle import Arena
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError
+from arena_common.core.wire import Spec
+from arena_common.mavlink.link import mavlink2
+from arena_common.mocap import natnet
+from arena_common.sim.natnet_server import TickClock, load_recording
 from tests.conftest import REPO, free_port, wait_for
 from tests.faultlib import (
     ServiceThread,

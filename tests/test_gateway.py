@@ -1,7 +1,7 @@
 """The MAVLink gateway against simulated PX4 vehicles over real UDP on 127.0.0.1, driven through the bus.
 
 A :class:`Rig` runs simulated autopilots (in a background loop, ``SPEED`` times real time), the gateways
-(the service's own ``running`` + :class:`~arena_common.gateway.Gateway`, in threads) and a vision feeder
+(the service's own ``running`` + :class:`~arena_common.gateway.gateway.Gateway`, in threads) and a vision feeder
 that publishes each vehicle's true pose on ``arena/<drone>/vision`` at 50 Hz, as the pipeline would.
 Everything the tests ask goes through the bus: commands on the queryable, state and events.
 """
@@ -22,12 +22,13 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
-from arena_common import keys, px4, wire
-from arena_common.bus import Bus
-from arena_common.config import ArenaConfig
-from arena_common.gateway import Gateway, GatewayOptions
-from arena_common.service import running
-from arena_common.sim_autopilot import AutopilotLoop, SimAutopilot, SimClock
+from arena_common.bus.session import Bus
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.gateway.gateway import Gateway, GatewayOptions
+from arena_common.mavlink import px4
+from arena_common.runtime.service import running
+from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock
 from tests.conftest import wait_for
 
 SPEED = 2.0

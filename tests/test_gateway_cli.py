@@ -6,8 +6,8 @@ from collections.abc import Callable
 
 from typer.testing import CliRunner
 
-from arena_common import px4
 from arena_common.cli import app
+from arena_common.mavlink import px4
 from tests.test_gateway import Rig, rig_factory  # noqa: F401  (the make_rig fixture)
 
 runner = CliRunner()

@@ -18,10 +18,14 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
-from arena_common import px4, wire
-from arena_common.gateway import GatewayOptions
-from arena_common.gateway_parts import EventSink, TimeSync, VehicleState, VisionSender
-from arena_common.mavlink_link import (
+from arena_common.core import wire
+from arena_common.gateway.events import EventSink
+from arena_common.gateway.gateway import GatewayOptions
+from arena_common.gateway.state import VehicleState
+from arena_common.gateway.timesync import TimeSync
+from arena_common.gateway.vision import VisionSender
+from arena_common.mavlink import px4
+from arena_common.mavlink.link import (
     MSG,
     FrameSplitter,
     GcsForwarder,
@@ -29,8 +33,8 @@ from arena_common.mavlink_link import (
     MavlinkLinkError,
     mavlink2,
 )
-from arena_common.mavlink_protocols import MavCommander
-from arena_common.sim_autopilot import AutopilotLoop, SimAutopilot
+from arena_common.mavlink.protocols import MavCommander
+from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot
 from tests.conftest import free_port, wait_for
 from tests.test_gateway import Rig, rig_factory  # noqa: F401  (the make_rig fixture)
 

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import msgpack
 
-from arena_common import config as config_mod
-from arena_common import keys, wire
-from arena_common.bus import Bus, BusOptions, open_bus
-from arena_common.config import ZenohSpec
-from arena_common.sim_autopilot import AutopilotLoop, SimAutopilot, SimClock
+from arena_common.bus.session import Bus, BusOptions, open_bus
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.core.config import ZenohSpec
+from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock
 from tests.conftest import REPO, free_port, wait_for, write_config
 from tests.test_gateway import ARENA_PARAMS, SPEED, MavPeer, Rig, rig_factory  # noqa: F401  (make_rig)
 

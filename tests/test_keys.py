@@ -1,7 +1,7 @@
 import pytest
 
-from arena_common import keys
-from arena_common.errors import InvalidName
+from arena_common.core import keys
+from arena_common.core.errors import InvalidName
 
 
 @pytest.mark.parametrize(

@@ -20,11 +20,11 @@ from typing import Any
 
 import pytest
 
-from arena_common import config as config_mod
-from arena_common import keys, wire
-from arena_common.bus import Bus, Subscription
-from arena_common.config import ArenaConfig
-from arena_common.natnet import MessageId, ModelDefs, RigidBody
+from arena_common.bus.session import Bus, Subscription
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.mocap.natnet import MessageId, ModelDefs, RigidBody
 from services import mocap_ingest
 from services.mocap_ingest import body_key_name, encode_pose
 from tests.conftest import REPO, wait_for, write_config

@@ -16,8 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from arena_common import config as config_mod
-from arena_common.mocap_sources import (
+from arena_common.core import config as config_mod
+from arena_common.mocap.client import MocapError, NatNetClient, TimedFrame
+from arena_common.mocap.sources import (
     CsvTakeError,
     CsvTakeSource,
     MotionCaptureSource,
@@ -26,7 +27,6 @@ from arena_common.mocap_sources import (
     read_csv_take,
     resolve_csv,
 )
-from arena_common.natnet_client import MocapError, NatNetClient, TimedFrame
 from tests.test_natnet_client import Body, FakeMotive, Rejects, fake_motive  # noqa: F401
 
 TAKE = Path(__file__).parent / "data" / "motive_take.csv"

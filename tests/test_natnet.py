@@ -14,9 +14,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from arena_common import natnet
-from arena_common.capture import read_frames_jsonl, read_udp
-from arena_common.natnet import (
+from arena_common.mocap import natnet
+from arena_common.mocap.capture import read_frames_jsonl, read_udp
+from arena_common.mocap.natnet import (
     Analog,
     Asset,
     AssetDef,

@@ -21,10 +21,18 @@ from typing import Any
 
 import pytest
 
-from arena_common import natnet
-from arena_common.capture import read_frames_jsonl, read_udp
-from arena_common.natnet import Frame, MessageId, ModelDefs, RigidBody, RigidBodyDef, ServerInfo, Version
-from arena_common.natnet_client import DEFAULT_GROUP, EchoClock, MocapError, NatNetClient, TimedFrame
+from arena_common.mocap import natnet
+from arena_common.mocap.capture import read_frames_jsonl, read_udp
+from arena_common.mocap.client import DEFAULT_GROUP, EchoClock, MocapError, NatNetClient, TimedFrame
+from arena_common.mocap.natnet import (
+    Frame,
+    MessageId,
+    ModelDefs,
+    RigidBody,
+    RigidBodyDef,
+    ServerInfo,
+    Version,
+)
 from tests.conftest import free_port, wait_for
 
 CAPTURE = Path(__file__).parent / "data" / "natnet" / "motive-2.1-natnet-3.0"

@@ -29,9 +29,9 @@ from typing import Any
 
 import pytest
 
-from arena_common import natnet
-from arena_common.natnet import Frame, MessageId, ModelDefs, RigidBody, RigidBodyDef, Version
-from arena_common.natnet_server import NatNetServer, TickClock
+from arena_common.mocap import natnet
+from arena_common.mocap.natnet import Frame, MessageId, ModelDefs, RigidBody, RigidBodyDef, Version
+from arena_common.sim.natnet_server import NatNetServer, TickClock
 from tests.conftest import free_port, wait_for
 
 V3_DIR = Path(__file__).parent / "data" / "natnet" / "motive-2.1-natnet-3.0"

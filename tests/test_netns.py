@@ -3,7 +3,7 @@
 * ``ground`` — the router, mocap ingest, frame transform and the simulated world (``arena up --host ground``);
 * ``cc1``, ``cc2`` — companion computers, each with its vehicle's downsampler and gateway
   (``arena up --host cc1``), reaching the router (and the simulated autopilot) over their own link;
-* ``user`` — a user program on :class:`arena_common.client.Arena`.
+* ``user`` — a user program on :class:`arena_common.client.vehicle.Arena`.
 
 The whole chain runs across them (d1 takes off from the user's laptop); cutting cc1's link makes its
 presence vanish within the configured lease and d1's failsafe land it, while d2 stays served; restoring
@@ -77,7 +77,8 @@ sim = {{ start = [1.0, 0.0] }}
 USER_PROGRAM = textwrap.dedent(
     """
     import json, sys, threading, time
-    from arena_common import Arena, keys
+    from arena_common import Arena
+    from arena_common.core import keys
 
     def report(**kw):
         print(json.dumps(kw), flush=True)

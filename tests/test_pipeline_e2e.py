@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from arena_common import config as config_mod
-from arena_common import keys, wire
-from arena_common.bus import Bus, Received
-from arena_common.frames import quat_angle, quat_from_euler
-from arena_common.natnet_server import ANGLE_NOISE_PER_M
+from arena_common.bus.session import Bus, Received
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.geometry.frames import quat_angle, quat_from_euler
+from arena_common.sim.natnet_server import ANGLE_NOISE_PER_M
 from tests.conftest import REPO, wait_for, write_config
 
 pytestmark = pytest.mark.system

@@ -13,9 +13,9 @@ from hypothesis import strategies as st
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink
 
-from arena_common import px4
-from arena_common.px4_metadata import load_parameters_json
-from arena_common.px4_sitl import build_missing_reason, find_build
+from arena_common.mavlink import px4
+from arena_common.mavlink.metadata import load_parameters_json
+from arena_common.runtime.px4_sitl import build_missing_reason, find_build
 
 
 def test_custom_mode_layout_matches_px4() -> None:
@@ -146,7 +146,7 @@ def test_defaults_are_the_real_px4_builds() -> None:
         assert name in meta, name
         assert types[meta[name]["type"]] == ptype, name
         if name != "SYS_AUTOSTART":  # the airframe's, not the metadata's
-            assert float(meta[name]["default"]) == pytest.approx(float(value)), name
+            assert meta[name]["default"] == pytest.approx(float(value)), name
     for name in px4.ARENA_REQUIRED_PARAMS:
         assert name in meta, name
 

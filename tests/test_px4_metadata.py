@@ -22,9 +22,9 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from arena_common import px4_metadata as pm
-from arena_common.errors import ArenaError
-from arena_common.mavlink_link import FrameSplitter, MavlinkLink, mavlink2
+from arena_common.core.errors import ArenaError
+from arena_common.mavlink import metadata as pm
+from arena_common.mavlink.link import FrameSplitter, MavlinkLink, mavlink2
 from tests.conftest import free_port
 
 SYS = 21  # the vehicle (PX4 instance 20 would be 21)

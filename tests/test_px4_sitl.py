@@ -16,12 +16,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from arena_common import config as config_mod
-from arena_common import px4, px4_sitl, security
+from arena_common.bus import security
 from arena_common.cli._deploy import DeployError, render_systemd
-from arena_common.frames import quat_from_yaw, quat_yaw
-from arena_common.px4_sitl import Px4Sitl, Px4SitlError
-from arena_common.supervisor import plan, sim_world_plan
+from arena_common.core import config as config_mod
+from arena_common.geometry.frames import quat_from_yaw, quat_yaw
+from arena_common.mavlink import px4
+from arena_common.runtime import px4_sitl
+from arena_common.runtime.px4_sitl import Px4Sitl, Px4SitlError
+from arena_common.runtime.supervisor import plan, sim_world_plan
 from services import sim_vehicle
 from services.px4_truth import EARTH_RADIUS, TruthFrame, geodetic_to_ned
 

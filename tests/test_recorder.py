@@ -20,11 +20,12 @@ import msgpack
 from mcap.reader import make_reader
 from typer.testing import CliRunner
 
-from arena_common import keys, recording, wire
-from arena_common.bus import Bus
+from arena_common.bus.session import Bus
 from arena_common.cli import app
-from arena_common.config import ArenaConfig, RecorderSpec
-from arena_common.recording import Recorder, Sample
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig, RecorderSpec
+from arena_common.recording import mcap as recording
+from arena_common.recording.mcap import Recorder, Sample
 from services import recorder as recorder_service
 from tests.conftest import REPO, wait_for
 

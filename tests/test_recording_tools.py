@@ -28,10 +28,12 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from typer.testing import CliRunner
 
-from arena_common import frames, keys, recording, wire
-from arena_common.bus import Bus
+from arena_common.bus.session import Bus
 from arena_common.cli import app
-from arena_common.recording import RecordingError, RecordingWriter, Sample
+from arena_common.core import keys, wire
+from arena_common.geometry import frames
+from arena_common.recording import mcap as recording
+from arena_common.recording.mcap import RecordingError, RecordingWriter, Sample
 from tests.conftest import REPO, wait_for
 
 runner = CliRunner()

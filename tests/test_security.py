@@ -13,12 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from arena_common import config as config_mod
-from arena_common import keys, wire
-from arena_common.bus import Bus, BusOptions, open_bus
-from arena_common.config import ArenaConfig, ZenohSpec
-from arena_common.errors import BusError
-from arena_common.security import (
+from arena_common.bus.security import (
     SecurityError,
     SecuritySpec,
     access_control,
@@ -29,6 +24,11 @@ from arena_common.security import (
     write_zconfig,
     zenoh_json,
 )
+from arena_common.bus.session import Bus, BusOptions, open_bus
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig, ZenohSpec
+from arena_common.core.errors import BusError
 from tests.conftest import free_port, wait_for
 
 pytestmark = pytest.mark.system

@@ -30,16 +30,17 @@ from typer.testing import CliRunner
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
-from arena_common import config as config_mod
-from arena_common import keys, px4, wire
-from arena_common.bus import Bus
+from arena_common.bus.session import Bus
 from arena_common.cli import app
-from arena_common.config import ArenaConfig
-from arena_common.gateway import Gateway, GatewayOptions
-from arena_common.gateway_parts import GatewayError, parse_origin
-from arena_common.mavlink_link import FrameSplitter, MavlinkLink, mavlink2
-from arena_common.service import running
-from arena_common.signing import (
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import GatewayError
+from arena_common.gateway.gateway import Gateway, GatewayOptions
+from arena_common.gateway.origin import parse_origin
+from arena_common.mavlink import px4
+from arena_common.mavlink.link import FrameSplitter, MavlinkLink, mavlink2
+from arena_common.mavlink.signing import (
     EPOCH_2015,
     GATEWAY_UNSIGNED,
     LinkSigning,
@@ -54,7 +55,8 @@ from arena_common.signing import (
     vehicle_key,
     write_px4_secret,
 )
-from arena_common.sim_autopilot import AutopilotLoop, SimAutopilot, SimClock
+from arena_common.runtime.service import running
+from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock
 from services.sim_vehicle import build_autopilots
 from tests.conftest import REPO, free_port, wait_for, write_config
 

@@ -20,8 +20,8 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
-from arena_common import px4
-from arena_common.sim_autopilot import (
+from arena_common.mavlink import px4
+from arena_common.sim.autopilot import (
     AutopilotLoop,
     SimAutopilot,
     SimAutopilotError,
@@ -29,7 +29,7 @@ from arena_common.sim_autopilot import (
     TimesyncFilter,
     run_autopilots,
 )
-from arena_common.sim_physics import BatteryParams
+from arena_common.sim.physics import BatteryParams
 
 SPEED = 4.0
 SYSID = 7

@@ -21,13 +21,14 @@ from typing import Any
 
 import pytest
 
-from arena_common import keys, natnet, wire
-from arena_common.bus import Bus
-from arena_common.capture import read_frames_jsonl, read_udp
-from arena_common.config import ArenaConfig
-from arena_common.errors import ConfigError
-from arena_common.natnet import Frame, MessageId, ModelDefs, RigidBodyDef, Version
-from arena_common.natnet_server import (
+from arena_common.bus.session import Bus
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError
+from arena_common.mocap import natnet
+from arena_common.mocap.capture import read_frames_jsonl, read_udp
+from arena_common.mocap.natnet import Frame, MessageId, ModelDefs, RigidBodyDef, Version
+from arena_common.sim.natnet_server import (
     MODELS_CHANGED,
     TICK_FREQUENCY,
     NatNetServer,

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from arena_common.sim_physics import (
+from arena_common.sim.physics import (
     Battery,
     BatteryParams,
     MotorMode,

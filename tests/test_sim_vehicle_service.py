@@ -16,11 +16,12 @@ from typing import Any
 import pytest
 from typer.testing import CliRunner
 
-from arena_common import keys, px4, wire
-from arena_common.bus import Bus, Subscription
-from arena_common.config import ArenaConfig
-from arena_common.errors import ConfigError
-from arena_common.sim_autopilot import SimAutopilotError, SimClock
+from arena_common.bus.session import Bus, Subscription
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError
+from arena_common.mavlink import px4
+from arena_common.sim.autopilot import SimAutopilotError, SimClock
 from services import sim_vehicle
 from tests.test_sim_autopilot import ARENA, Gcs
 

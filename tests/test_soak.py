@@ -45,9 +45,9 @@ from typing import Any
 
 import pytest
 
-from arena_common import config as config_mod
-from arena_common import wire
-from arena_common.bus import Subscription
+from arena_common.bus.session import Subscription
+from arena_common.core import config as config_mod
+from arena_common.core import wire
 from tests.conftest import wait_for
 from tests.faultlib import RESULTS_DIR, ArenaUp, Watch, peer_bus, rss_bytes, write_arena_config
 

@@ -22,13 +22,13 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from arena_common import config as config_mod
-from arena_common import keys
-from arena_common.bus import BusOptions, open_bus
+from arena_common.bus.session import BusOptions, open_bus
 from arena_common.cli import app
-from arena_common.config import ZenohSpec
-from arena_common.errors import ConfigError
-from arena_common.supervisor import (
+from arena_common.core import config as config_mod
+from arena_common.core import keys
+from arena_common.core.config import ZenohSpec
+from arena_common.core.errors import ConfigError
+from arena_common.runtime.supervisor import (
     Backoff,
     ProcessSpec,
     Supervisor,
@@ -318,7 +318,7 @@ def test_sigterm_then_sigkill_after_grace(worker: Path) -> None:
 DRIVER = textwrap.dedent(
     """
     import sys
-    from arena_common.supervisor import ProcessSpec, supervise
+    from arena_common.runtime.supervisor import ProcessSpec, supervise
     worker = sys.argv[1]
     specs = [ProcessSpec(f"w{i}", (sys.executable, worker, "stubborn" if i else "run")) for i in range(2)]
     supervise(specs, grace=1.0)

@@ -11,7 +11,6 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from arena_common import config as config_mod
 from arena_common.cli import app
 from arena_common.cli._deploy import (
     SERVICE_UNITS,
@@ -21,7 +20,8 @@ from arena_common.cli._deploy import (
     render_systemd,
     write_units,
 )
-from arena_common.errors import ConfigError
+from arena_common.core import config as config_mod
+from arena_common.core.errors import ConfigError
 from tests.conftest import REPO
 
 runner = CliRunner()

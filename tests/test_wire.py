@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from arena_common import wire
-from arena_common.errors import PayloadError
+from arena_common.core import wire
+from arena_common.core.errors import PayloadError
 
 POSE = wire.Pose(t=1_700_000_000_000_000_000, p=(1.0, -2.0, -0.5), q=(1.0, 0.0, 0.0, 0.0), ok=True, fn=7)
 

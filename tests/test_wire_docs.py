@@ -16,7 +16,8 @@ import msgpack
 import msgspec
 import pytest
 
-from arena_common import keys, wire, wiredoc
+from arena_common.core import keys, wire
+from tools import wiredoc
 
 TESTS = Path(__file__).resolve().parent
 REPO = TESTS.parent
@@ -92,9 +93,7 @@ def _without_nan(v: Any) -> Any:
 
 def test_checked_in_files_equal_what_the_code_generates() -> None:
     drift = wiredoc.drift(REPO)
-    assert drift == [], "wire docs drift from the code; run `python -m arena_common.wiredoc`:\n" + "\n".join(
-        drift
-    )
+    assert drift == [], "wire docs drift from the code; run `python -m tools.wiredoc`:\n" + "\n".join(drift)
 
 
 def test_check_reports_changed_missing_and_stale_files_and_write_repairs_them(
@@ -129,7 +128,7 @@ def test_check_reports_changed_missing_and_stale_files_and_write_repairs_them(
 
 def test_check_runs_as_a_module() -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "arena_common.wiredoc", "--check"],
+        [sys.executable, "-m", "tools.wiredoc", "--check"],
         cwd=REPO,
         capture_output=True,
         text=True,

@@ -20,7 +20,6 @@ app = typer.Typer(
 
 GROUPS = (
     "_core",
-    "_sim",
     "_mocap",
     "_calibrate",
     "_services",
@@ -29,17 +28,10 @@ GROUPS = (
     "_px4",
     "_rec",
     "_deploy",
-    "_bench",
 )
 
 for _name in GROUPS:
-    try:
-        _module = importlib.import_module(f"{__name__}.{_name}")
-    except ModuleNotFoundError as _exc:
-        if _exc.name != f"{__name__}.{_name}":
-            raise
-        continue
-    _module.register(app)
+    importlib.import_module(f"{__name__}.{_name}").register(app)
 
 
 def main() -> None:

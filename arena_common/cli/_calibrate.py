@@ -4,7 +4,7 @@ The calibration maps Motive's frame (after the ``mocap.up_axis`` conversion to N
 a rotation about Down and an offset (``[calibration] yaw_deg, offset``). Place one rigid body on two or
 more marks whose arena coordinates (north, east, down from the floor's centre) are known; the command
 averages the body's raw Motive position at each mark over about a second, solves the least-squares yaw
-and offset (:func:`~arena_common.frames.solve_calibration`), prints them with the residual at each mark,
+and offset (:func:`~arena_common.geometry.frames.solve_calibration`), prints them with the residual at each mark,
 and with ``--write`` rewrites the ``[calibration]`` table of the config file in place (every other byte of
 the file is kept).
 
@@ -36,11 +36,11 @@ from typing import Annotated, TextIO
 
 import typer
 
-from arena_common import config as config_mod
-from arena_common import keys, wire
-from arena_common.bus import Subscription, open_bus
-from arena_common.errors import ArenaError, ConfigError, InvalidName
-from arena_common.frames import (
+from arena_common.bus.session import Subscription, open_bus
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.core.errors import ArenaError, ConfigError, InvalidName
+from arena_common.geometry.frames import (
     Calibration,
     CalibrationError,
     FrameError,
@@ -50,7 +50,7 @@ from arena_common.frames import (
     motive_to_ned,
     solve_calibration,
 )
-from arena_common.options import (
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     ListenOpt,

@@ -12,11 +12,12 @@ from typing import Annotated
 
 import typer
 
-from arena_common import config as config_mod
-from arena_common import keys, security, wire
-from arena_common.bus import Received
-from arena_common.errors import ConfigError
-from arena_common.options import (
+from arena_common.bus import security
+from arena_common.bus.session import Received
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.core.errors import ConfigError
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -26,7 +27,7 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.service import host_name, running, setup_logging
+from arena_common.runtime.service import host_name, running, setup_logging
 
 config_app = typer.Typer(help="Check arena config files.", no_args_is_help=True)
 

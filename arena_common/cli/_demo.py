@@ -24,11 +24,11 @@ from rich.live import Live
 from rich.text import Text
 
 from arena_common.cli._flight import Snapshot
-from arena_common.client import Arena, Swarm, Vehicle
-from arena_common.config import ArenaConfig
-from arena_common.errors import ArenaError
-from arena_common.options import ConfigOpt, config_path, load_config
-from arena_common.supervisor import child_setup
+from arena_common.client.vehicle import Arena, Swarm, Vehicle
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ArenaError
+from arena_common.runtime.options import ConfigOpt, config_path, load_config
+from arena_common.runtime.supervisor import child_setup
 
 console = Console()
 

@@ -21,10 +21,10 @@ from typing import Annotated
 
 import typer
 
-from arena_common import keys
-from arena_common.config import ArenaConfig, HostSpec
-from arena_common.errors import ArenaError, BusError, ConfigError
-from arena_common.options import (
+from arena_common.core import keys
+from arena_common.core.config import ArenaConfig, HostSpec
+from arena_common.core.errors import ArenaError, BusError, ConfigError
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -34,8 +34,8 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.service import Service, running
-from arena_common.supervisor import SUPERVISOR_SERVICE, Supervisor, host_options, plan, supervise
+from arena_common.runtime.service import Service, running
+from arena_common.runtime.supervisor import SUPERVISOR_SERVICE, Supervisor, host_options, plan, supervise
 
 REPO = Path(__file__).resolve().parents[2]
 TEMPLATE_DIR = REPO / "deploy" / "systemd"

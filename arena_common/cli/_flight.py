@@ -12,11 +12,11 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from arena_common import keys, wire
-from arena_common.bus import Bus
-from arena_common.client import Arena, Vehicle
-from arena_common.errors import ArenaError
-from arena_common.options import ConfigOpt, ConnectOpt, ModeOpt, load_config
+from arena_common.bus.session import Bus
+from arena_common.client.vehicle import Arena, Vehicle
+from arena_common.core import keys, wire
+from arena_common.core.errors import ArenaError
+from arena_common.runtime.options import ConfigOpt, ConnectOpt, ModeOpt, load_config
 
 console = Console()
 err_console = Console(stderr=True)

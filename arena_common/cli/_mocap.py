@@ -14,8 +14,8 @@ from typing import Annotated
 
 import typer
 
-from arena_common import natnet
-from arena_common.natnet_client import MocapError, NatNetClient, TimedFrame, local_address_towards
+from arena_common.mocap import natnet
+from arena_common.mocap.client import MocapError, NatNetClient, TimedFrame, local_address_towards
 
 mocap_app = typer.Typer(help="Look at the motion-capture server.", no_args_is_help=True)
 

@@ -1,7 +1,7 @@
 """``arena px4 check <drone>`` and ``arena px4 setup <drone>``: the arena's PX4 parameters, via the gateway.
 
 Both go through the vehicle's gateway (its ``arena/<drone>/cmd`` queryable), which reads the parameters
-the arena requires (:data:`arena_common.px4.ARENA_REQUIRED_PARAMS`, INT32 values decoded bytewise) and,
+the arena requires (:data:`arena_common.mavlink.px4.ARENA_REQUIRED_PARAMS`, INT32 values decoded bytewise) and,
 for ``setup``, writes those that differ and reads every one back.  A table shows each parameter; the
 exit status is 0 when all match, 1 when some differ or the vehicle did not answer.
 
@@ -17,10 +17,11 @@ from typing import Annotated, Any
 
 import typer
 
-from arena_common import keys, wire
-from arena_common.bus import Bus, open_bus
-from arena_common.errors import ArenaError
-from arena_common.options import (
+from arena_common.bus.session import Bus, open_bus
+from arena_common.core import keys, wire
+from arena_common.core.errors import ArenaError
+from arena_common.mavlink.signing import SigningError, generate_key_file, write_px4_secret
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     ListenOpt,
@@ -29,7 +30,6 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.signing import SigningError, generate_key_file, write_px4_secret
 
 px4_app = typer.Typer(
     help="PX4 set-up of the arena's vehicles (through their gateways).", no_args_is_help=True

@@ -11,10 +11,11 @@ from typing import Annotated, Any
 import typer
 import zenoh
 
-from arena_common import keys, recording, wire
-from arena_common.bus import open_bus
-from arena_common.errors import ArenaError
-from arena_common.options import (
+from arena_common.bus.session import open_bus
+from arena_common.core import keys, wire
+from arena_common.core.errors import ArenaError
+from arena_common.recording import mcap as recording
+from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
     HostOpt,
@@ -24,7 +25,7 @@ from arena_common.options import (
     bus_options,
     load_config,
 )
-from arena_common.service import running, setup_logging
+from arena_common.runtime.service import running, setup_logging
 
 rec_app = typer.Typer(help="Recordings: inspect, repair, and start/stop the recorders.", no_args_is_help=True)
 
@@ -294,7 +295,7 @@ def plot_cmd(
     ),
 ) -> None:
     """PNG figures: paths in the arena (top and side), pose vs estimate, tracking error, vision, battery."""
-    from arena_common import plots  # matplotlib is slow to import: only when plotting
+    from arena_common.recording import plots  # matplotlib is slow to import: only when plotting
 
     try:
         written = plots.plot_recording(file, output)

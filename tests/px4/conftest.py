@@ -16,8 +16,8 @@ from typing import IO
 import pytest
 
 from arena_common import Arena
-from arena_common.client import Vehicle
-from arena_common.px4_sitl import Px4Sitl, build_missing_reason
+from arena_common.client.vehicle import Vehicle
+from arena_common.runtime.px4_sitl import Px4Sitl, build_missing_reason
 from tests.conftest import wait_for
 from tests.px4.harness import InstancePool, Px4Stack, px4_stack, write_px4_config
 

@@ -1,7 +1,7 @@
 """The real-PX4 tier's machinery: PX4 SITL instances and the arena's unchanged services in front of them.
 
 :class:`Px4Stack` runs, for each vehicle of a private config (``autopilot = "px4-sitl"``), a PX4 SITL
-instance (in this process: :class:`~arena_common.px4_sitl.Px4Sitl`, so a test can read PX4's own view
+instance (in this process: :class:`~arena_common.runtime.px4_sitl.Px4Sitl`, so a test can read PX4's own view
 with ``px4-listener`` or boot it again) and, as separate processes that a test can stop and start, the
 Motive emulator, mocap ingest, frame transform, and per vehicle its truth bridge, downsampler and
 gateway — the pipeline ``arena up`` runs, one process each.  Every output goes to a log file under the
@@ -25,11 +25,12 @@ from typing import IO
 
 import numpy as np
 
-from arena_common import Arena, keys, wire
-from arena_common import config as config_mod
-from arena_common.config import ArenaConfig
-from arena_common.frames import quat_yaw, wrap_angle
-from arena_common.px4_sitl import MAX_INSTANCE, Px4Sitl, instance_busy
+from arena_common import Arena
+from arena_common.core import config as config_mod
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.geometry.frames import quat_yaw, wrap_angle
+from arena_common.runtime.px4_sitl import MAX_INSTANCE, Px4Sitl, instance_busy
 from services.px4_sitl import boot_params
 from tests.conftest import REPO, free_port
 

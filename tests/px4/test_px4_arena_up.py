@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from arena_common import Arena
-from arena_common.px4_sitl import instance_busy, is_true, listener, run_tool
+from arena_common.runtime.px4_sitl import instance_busy, is_true, listener, run_tool
 from tests.conftest import REPO, free_port, wait_for
 from tests.px4.harness import HOST, InstancePool, write_px4_config
 

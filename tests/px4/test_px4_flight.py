@@ -11,8 +11,8 @@ from __future__ import annotations
 import math
 import time
 
-from arena_common.frames import quat_yaw, wrap_angle
-from arena_common.px4_sitl import Px4Sitl, Px4SitlError, is_true
+from arena_common.geometry.frames import quat_yaw, wrap_angle
+from arena_common.runtime.px4_sitl import Px4Sitl, Px4SitlError, is_true
 from tests.conftest import wait_for
 from tests.px4.conftest import PX4ArenaFactory
 from tests.px4.harness import FlightRecord

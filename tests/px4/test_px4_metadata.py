@@ -20,9 +20,9 @@ from pathlib import Path
 
 import pytest
 
-from arena_common import px4_metadata as pm
-from arena_common import px4_sitl as sitl
-from arena_common.mavlink_link import MSG, MavlinkLink, mavlink2
+from arena_common.mavlink import metadata as pm
+from arena_common.mavlink.link import MSG, MavlinkLink, mavlink2
+from arena_common.runtime import px4_sitl as sitl
 
 pytestmark = pytest.mark.px4
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from arena_common.px4_sitl import Px4Sitl, instance_busy, is_true
+from arena_common.runtime.px4_sitl import Px4Sitl, instance_busy, is_true
 
 
 def test_boot_listener_reboot_and_clean_stop(px4_sitl: Callable[..., Px4Sitl]) -> None:

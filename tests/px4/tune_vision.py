@@ -24,9 +24,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from arena_common import Arena, ArenaError, CommandError
-from arena_common.bus import BusOptions, open_bus
-from arena_common.config import ZenohSpec
-from arena_common.px4_sitl import is_true
+from arena_common.bus.session import BusOptions, open_bus
+from arena_common.core.config import ZenohSpec
+from arena_common.runtime.px4_sitl import is_true
 from tests.conftest import free_port, wait_for
 from tests.px4.harness import FlightRecord, InstancePool, px4_stack, write_px4_config
 

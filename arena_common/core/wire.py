@@ -1,0 +1,726 @@
+"""The wire contract: typed payloads for every key, encoded as msgpack maps with short field names.
+
+Every payload is a frozen :class:`msgspec.Struct`. Each field's annotation says everything about it:
+its type (msgspec decodes and validates it), its range, and its description and unit
+(``Annotated[int, _int("Measurement time", unit="ns")]``). The field names are the wire names. The
+same annotations drive encoding, validated decoding, the JSON Schemas in ``docs/schemas/`` and
+``docs/wire.md``. What a type cannot say (the names a string may take, unit quaternions, rules
+between fields) is :meth:`Payload.check`, run on every decode.
+
+SI units everywhere; times are integer nanoseconds since the Unix epoch (``t`` = when it was measured
+or happened, ``tp`` = when it was published). The Zenoh encoding names the schema and its version:
+``application/msgpack;arena.Pose/1``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import itertools
+import math
+import re
+import sys
+import time
+from collections.abc import Mapping
+from typing import Annotated, Any, ClassVar, TypeVar
+
+import msgspec
+from msgspec import Meta
+
+from arena_common.core import keys
+from arena_common.core.errors import InvalidName, PayloadError
+
+ENCODING_PREFIX = "application/msgpack;"
+_MAX_INT = 2**63 - 1  # int fields are int64 (a msgpack uint64 above this is refused)
+_MAX_FLOAT = sys.float_info.max  # float fields are finite: NaN and ±inf fail ``ge``/``le``
+
+
+def now_ns() -> int:
+    """Wall-clock time in integer nanoseconds, the arena's common time base."""
+    return time.time_ns()
+
+
+# -- field types and their metadata --------------------------------------------------------------------
+
+F64 = Annotated[float, Meta(ge=-_MAX_FLOAT, le=_MAX_FLOAT)]  # a finite float64
+Vec3 = tuple[F64, F64, F64]
+Quat = tuple[F64, F64, F64, F64]
+Str = Annotated[str, Meta(max_length=4096)]
+Strs = Annotated[tuple[str, ...], Meta(max_length=256)]
+Map = dict[str, Any]
+
+
+def _int(doc: str, *, unit: str = "", lo: int = -_MAX_INT, hi: int = _MAX_INT) -> Meta:
+    """An integer field: int64, or ``lo``…``hi``."""
+    return Meta(ge=lo, le=hi, description=doc, extra={"unit": unit})
+
+
+def _float(
+    doc: str, *, unit: str = "", lo: float = -_MAX_FLOAT, hi: float = _MAX_FLOAT, nan_ok: bool = False
+) -> Meta:
+    """A float64 field: finite, or ``lo``…``hi``; ``nan_ok`` lets NaN (= unknown) through, not ±inf."""
+    if nan_ok:
+        return Meta(description=doc, extra={"unit": unit, "nan_ok": True})
+    return Meta(ge=lo, le=hi, description=doc, extra={"unit": unit})
+
+
+def _doc(doc: str, *, unit: str = "", choices: tuple[str, ...] = ()) -> Meta:
+    """Any other field: its description, unit, and for a string the names it may take."""
+    return Meta(description=doc, extra={"unit": unit, "choices": choices})
+
+
+def _always(value: Any) -> Any:
+    """A field default that still travels when the field holds it.
+
+    Payloads set ``omit_defaults`` so that an optional field (default ``None``) is left out of the map
+    while ``None``; every other field is always sent, as the golden vectors say. msgspec leaves out a
+    value only when it *is* the default object or an empty ``dict``/``list``/``set`` made by that type,
+    so a default made by any other factory is never left out.
+    """
+    if isinstance(value, dict):
+        return msgspec.field(default_factory=value.copy)
+    return msgspec.field(default_factory=itertools.repeat(value).__next__)
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Spec:
+    """How one field travels, read from its annotation: wire name, kind, unit, range and description."""
+
+    wire: str
+    kind: str  # int, float, bool, str, vec3, quat, map, strs
+    doc: str
+    unit: str = ""
+    lo: float | None = None
+    hi: float | None = None
+    optional: bool = False
+    nan_ok: bool = False
+    choices: tuple[str, ...] = ()
+    required: bool = False
+
+
+_KINDS: dict[type, str] = {
+    msgspec.inspect.IntType: "int",
+    msgspec.inspect.FloatType: "float",
+    msgspec.inspect.BoolType: "bool",
+    msgspec.inspect.StrType: "str",
+    msgspec.inspect.VarTupleType: "strs",
+    msgspec.inspect.DictType: "map",
+}
+
+
+def _spec(cls: type, field: msgspec.inspect.Field) -> Spec:
+    """A field's spec from msgspec's view of ``Annotated[X, _int/_float/_doc(…)]`` (or that ``| None``)."""
+    t, optional = field.type, False
+    if isinstance(t, msgspec.inspect.UnionType):
+        (t,) = [m for m in t.types if not isinstance(m, msgspec.inspect.NoneType)]
+        optional = True
+    meta = t if isinstance(t, msgspec.inspect.Metadata) else None
+    doc: str = (meta.extra_json_schema or {}).get("description", "") if meta else ""
+    if meta is None or not doc:
+        raise TypeError(f"{cls.__name__}.{field.name}: annotate it with _int, _float or _doc")
+    extra, t = meta.extra or {}, meta.type
+    if isinstance(t, msgspec.inspect.TupleType):
+        kind = {3: "vec3", 4: "quat"}[len(t.item_types)]
+    else:
+        kind = _KINDS[type(t)]
+    lo = getattr(t, "ge", None)  # int64 and finite-float bounds are the kind's, not a range
+    hi = getattr(t, "le", None)
+    return Spec(
+        wire=field.encode_name,
+        kind=kind,
+        doc=doc,
+        unit=extra.get("unit", ""),
+        lo=None if lo in (-_MAX_INT, -_MAX_FLOAT) else lo,
+        hi=None if hi in (_MAX_INT, _MAX_FLOAT) else hi,
+        optional=optional,
+        nan_ok=extra.get("nan_ok", False),
+        choices=extra.get("choices", ()),
+        required=field.required,
+    )
+
+
+# -- the payload base ----------------------------------------------------------------------------------
+
+T = TypeVar("T", bound="Payload")
+
+
+class Payload(msgspec.Struct, frozen=True, omit_defaults=True):
+    """Base of every wire type: a frozen Struct with ``SCHEMA``, ``VERSION`` and ``DOC``."""
+
+    SCHEMA: ClassVar[str]
+    VERSION: ClassVar[int] = 1
+    DOC: ClassVar[str] = ""
+    _specs: ClassVar[tuple[tuple[str, Spec], ...]]
+    _by_wire: ClassVar[dict[str, Spec]]
+    _choices: ClassVar[tuple[tuple[str, frozenset[str], str], ...]]
+    _nan_ok: ClassVar[tuple[str, ...]]
+    _decoder: ClassVar[msgspec.msgpack.Decoder[Any]]
+
+    @classmethod
+    def encoding(cls) -> str:
+        """The Zenoh encoding string, e.g. ``application/msgpack;arena.Pose/1``."""
+        return f"{ENCODING_PREFIX}arena.{cls.SCHEMA}/{cls.VERSION}"
+
+    def encode(self) -> bytes:
+        """The msgpack bytes."""
+        raw = _ENCODER.encode(self)
+        if raw[0] == 0xDE and raw[1] == 0 and raw[2] < 16:
+            # msgspec sizes the map header by how many fields the Struct has (a State has 21); with
+            # optional fields left out 15 or fewer may remain, which msgpack writes as a fixmap.
+            return bytes((0x80 | raw[2],)) + raw[3:]
+        return raw
+
+    def to_dict(self) -> dict[str, Any]:
+        """The wire map (short field names, arrays as lists), exactly as a receiver decodes it."""
+        data: dict[str, Any] = msgspec.msgpack.decode(self.encode())
+        return data
+
+    @classmethod
+    def decode(cls: type[T], raw: bytes, key: str = "") -> T:
+        """Decode and validate msgpack bytes of this type; raise :class:`PayloadError` naming the field."""
+        try:
+            obj = cls._decoder.decode(raw)
+        except (msgspec.MsgspecError, RecursionError):
+            # Not valid as it is: decode it again as plain msgpack, to say which field is wrong and why
+            # (or to read a nil where NaN is allowed: JSON has no NaN).
+            return cls.from_dict(_unpack(raw, key, cls.SCHEMA), key)
+        problem = obj.check()
+        if problem:
+            raise PayloadError(problem[1], key=key, type_name=cls.SCHEMA, field=problem[0])
+        return obj
+
+    @classmethod
+    def from_dict(cls: type[T], data: Any, key: str = "") -> T:
+        """Validate a wire map and build the payload; raise :class:`PayloadError` naming the field."""
+        if not isinstance(data, Mapping):
+            raise PayloadError(f"expected a map, got {type(data).__name__}", key=key, type_name=cls.SCHEMA)
+        data = dict(data)
+        for name in cls._nan_ok:
+            if name in data and data[name] is None:
+                data[name] = math.nan  # nil stands for "unknown" where NaN is allowed
+        try:
+            obj = msgspec.convert(data, cls)
+        except msgspec.ValidationError as exc:
+            field, reason = _explain(cls, data, str(exc))
+            raise PayloadError(reason, key=key, type_name=cls.SCHEMA, field=field) from None
+        problem = obj.check()
+        if problem:
+            raise PayloadError(problem[1], key=key, type_name=cls.SCHEMA, field=problem[0])
+        return obj
+
+    def check(self) -> tuple[str, str] | None:
+        """What the field types cannot say: allowed names, NaN but no infinity where NaN is allowed.
+
+        Subclasses add their rules (unit quaternions, rules between fields); ``(field, reason)`` when
+        broken. Run on every decode, not on construction.
+        """
+        for name, allowed, listed in self._choices:
+            value = getattr(self, name)
+            if value not in allowed:
+                return name, f"{value!r} not one of {listed}"
+        for name in self._nan_ok:
+            value = getattr(self, name)
+            if math.isinf(value):
+                return name, f"not a finite number: {value}"
+        return None
+
+    def replace(self: T, **changes: Any) -> T:
+        """A copy with some fields changed."""
+        return msgspec.structs.replace(self, **changes)
+
+
+def _enc_hook(obj: Any) -> Any:
+    """Numbers of subclasses msgspec does not take as they are (e.g. numpy.float64), as plain ones."""
+    if isinstance(obj, float):
+        return float(obj)
+    if isinstance(obj, int):
+        return int(obj)
+    raise TypeError(f"can not serialize {type(obj).__name__!r} object")
+
+
+_ENCODER = msgspec.msgpack.Encoder(enc_hook=_enc_hook)
+
+
+def _unpack(raw: bytes, key: str, type_name: str) -> Any:
+    try:
+        return msgspec.msgpack.decode(raw)
+    except Exception as exc:  # DecodeError; RecursionError on absurd nesting
+        raise PayloadError(f"not valid msgpack: {exc}", key=key, type_name=type_name) from None
+
+
+_WHERE = re.compile(
+    r"(?P<what>.*?)(?: - at (?P<in_key>`key` in )?`\$(?:\.(?P<field>\w+))?(?:\[(?P<i>\d+)\])?`)?"
+)
+
+
+def _explain(cls: type[Payload], data: dict[str, Any], message: str) -> tuple[str, str]:
+    """``(field, reason)`` in the wire's words for msgspec's ``message`` about ``data``."""
+    m = _WHERE.fullmatch(message)
+    assert m is not None  # the pattern matches any text
+    missing = re.fullmatch(r"Object missing required field `(\w+)`", m["what"])
+    if missing:
+        return missing[1], "missing field"
+    spec = cls._by_wire.get(m["field"] or "")
+    if spec is None or m["in_key"]:
+        return m["field"] or "", "expected a map with string keys" if m["in_key"] else m["what"]
+    value = data.get(spec.wire)
+    if value is None:
+        return spec.wire, "must not be nil"
+    if spec.kind in ("vec3", "quat"):
+        n = 3 if spec.kind == "vec3" else 4
+        if not isinstance(value, (list, tuple)) or len(value) != n or m["i"] is None:
+            return spec.wire, f"expected an array of {n} numbers"
+        value = value[int(m["i"])]
+    kind = spec.kind
+    if kind in ("int", "float", "vec3", "quat"):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return spec.wire, f"expected a number, got {type(value).__name__}"
+        if kind == "int" and not isinstance(value, int):
+            return spec.wire, "expected an integer"
+        if kind != "int":
+            value = float(value)
+        if not math.isfinite(value):
+            return spec.wire, f"not a finite number: {value}"
+        if spec.lo is None and spec.hi is None:
+            return spec.wire, "integer out of range"  # beyond int64
+        return spec.wire, f"{value} outside [{spec.lo}, {spec.hi}]"
+    wrong_type: dict[str, tuple[type | tuple[type, ...], str]] = {
+        "bool": (bool, "expected a boolean"),
+        "str": (str, "expected a string"),
+        "strs": ((list, tuple), "expected an array of strings"),
+        "map": (dict, "expected a map with string keys"),
+    }
+    want, reason = wrong_type[kind]
+    if not isinstance(value, want):
+        return spec.wire, f"{reason}, got {type(value).__name__}"
+    if kind == "str":
+        return spec.wire, "string longer than 4096"
+    if kind == "strs" and isinstance(value, (list, tuple)) and len(value) > 256:
+        return spec.wire, "more than 256 strings"
+    return spec.wire, reason
+
+
+def _quat_problem(q: Quat | None, wire: str) -> tuple[str, str] | None:
+    if q is None:
+        return None
+    n = math.hypot(*q)
+    if abs(n - 1.0) > 1e-3:
+        return wire, f"quaternion norm {n:.4f} is not 1"
+    return None
+
+
+REGISTRY: dict[str, type[Payload]] = {}
+
+
+def payload(cls: type[T]) -> type[T]:
+    """Class decorator: read the field specs from the annotations, build the decoder, register the schema."""
+    info = msgspec.inspect.type_info(cls)
+    assert isinstance(info, msgspec.inspect.StructType)
+    fields = info.fields
+    for f in fields:
+        if f.default is not msgspec.NODEFAULT and f.default is not None:
+            raise TypeError(f"{cls.__name__}.{f.name}: give its default as _always(...) so that it travels")
+    cls._specs = tuple((f.name, _spec(cls, f)) for f in fields)
+    cls._by_wire = {spec.wire: spec for _, spec in cls._specs}
+    cls._choices = tuple(
+        (name, frozenset(spec.choices), ", ".join(spec.choices)) for name, spec in cls._specs if spec.choices
+    )
+    cls._nan_ok = tuple(name for name, spec in cls._specs if spec.nan_ok)
+    cls._decoder = msgspec.msgpack.Decoder(cls)
+    REGISTRY[cls.SCHEMA] = cls
+    return cls
+
+
+def default_of(cls: type[Payload], name: str) -> Any:
+    """The value field ``name`` takes when a sender omits it, or ``dataclasses.MISSING`` when required."""
+    for f in msgspec.structs.fields(cls):
+        if f.name == name:
+            if f.default_factory is not msgspec.NODEFAULT:
+                return f.default_factory()
+            if f.default is not msgspec.NODEFAULT:
+                return f.default
+    return dataclasses.MISSING
+
+
+_default_of = default_of  # the name the fuzz tests use
+
+# -- the payload types ---------------------------------------------------------------------------------
+
+_LANDED = ("undefined", "on_ground", "in_air", "takeoff", "landing")
+_TSRC = ("echo", "latency", "arrival", "sim")
+
+
+@payload
+class MocapPose(Payload, frozen=True):
+    """A rigid body as Motive streamed it, in Motive's own frame (Y-up or Z-up)."""
+
+    SCHEMA = "MocapPose"
+    DOC = "A rigid body as Motive streamed it, in Motive's frame; `ok` false when Motive lost tracking."
+    t: Annotated[int, _int("Measurement time (camera mid-exposure on the local clock)", unit="ns")]
+    fn: Annotated[int, _int("Motive frame number", lo=0)]
+    id: Annotated[int, _int("Motive rigid-body id")]
+    p: Annotated[Vec3, _doc("Position x, y, z in Motive's frame", unit="m")]
+    q: Annotated[Quat, _doc("Attitude quaternion w, x, y, z in Motive's frame (body to world)")]
+    ok: Annotated[bool, _doc("Tracking valid (Motive's rigid-body params bit 0)")]
+    name: Annotated[Str, _doc("Rigid-body name from Motive's model definitions")] = _always("")
+    err: Annotated[float, _float("Mean marker error (NaN when unknown)", unit="m", nan_ok=True)] = _always(
+        math.nan
+    )
+    lat: Annotated[int, _int("System latency, camera exposure to transmit (-1 unknown)", unit="ns")] = (
+        _always(-1)
+    )
+    mts: Annotated[float, _float("Motive's session timestamp", unit="s")] = _always(0.0)
+    tsrc: Annotated[Str, _doc("How `t` was obtained", choices=_TSRC)] = _always("arrival")
+    tp: Annotated[int, _int("Publish time", unit="ns")] = _always(0)
+
+    def check(self) -> tuple[str, str] | None:
+        return super().check() or (_quat_problem(self.q, "q") if self.ok else None)
+
+
+@payload
+class Pose(Payload, frozen=True):
+    """A pose in the arena frame: NED position, FRD body attitude, with estimated velocities."""
+
+    SCHEMA = "Pose"
+    DOC = "Pose in the arena frame (NED position, FRD body quaternion) with finite-difference velocities."
+    t: Annotated[int, _int("Measurement time", unit="ns")]
+    p: Annotated[Vec3, _doc("Position north, east, down", unit="m")]
+    q: Annotated[Quat, _doc("Attitude quaternion w, x, y, z, body FRD to arena NED")]
+    ok: Annotated[bool, _doc("Pose valid (tracked); never send an invalid pose to an autopilot")]
+    fn: Annotated[int, _int("Motive frame number (0 when not from Motive)", lo=0)] = _always(0)
+    v: Annotated[Vec3, _doc("Velocity north, east, down", unit="m/s")] = _always((0.0, 0.0, 0.0))
+    w: Annotated[Vec3, _doc("Angular velocity, body FRD", unit="rad/s")] = _always((0.0, 0.0, 0.0))
+    vok: Annotated[bool, _doc("Velocities valid")] = _always(False)
+    rc: Annotated[
+        int, _int("Reset counter: changes when the pose jumps (re-acquired, recalibrated)", lo=0, hi=255)
+    ] = _always(0)
+    tp: Annotated[int, _int("Publish time", unit="ns")] = _always(0)
+
+    def check(self) -> tuple[str, str] | None:
+        return super().check() or (_quat_problem(self.q, "q") if self.ok else None)
+
+
+@payload
+class State(Payload, frozen=True):
+    """The vehicle as its autopilot reports it, plus the health of the gateway's link and vision."""
+
+    SCHEMA = "State"
+    DOC = "The vehicle as its autopilot reports it, with link and vision-pipeline health."
+    t: Annotated[int, _int("Time of this snapshot", unit="ns")]
+    sysid: Annotated[int, _int("MAVLink system id of the autopilot", lo=0, hi=255)] = _always(0)
+    link: Annotated[bool, _doc("Heartbeats arriving (none for 3 s = link lost)")] = _always(False)
+    armed: Annotated[bool, _doc("Motors armed")] = _always(False)
+    mode: Annotated[Str, _doc("Flight mode by name (PX4 naming, e.g. OFFBOARD, AUTO.LAND)")] = _always(
+        "UNKNOWN"
+    )
+    landed: Annotated[Str, _doc("Landed state", choices=_LANDED)] = _always("undefined")
+    p: Annotated[Vec3, _doc("Autopilot's local position estimate, NED", unit="m")] | None = None
+    v: Annotated[Vec3, _doc("Autopilot's velocity estimate, NED", unit="m/s")] | None = None
+    q: Annotated[Quat, _doc("Autopilot's attitude, FRD to NED")] | None = None
+    mp: Annotated[Vec3, _doc("Last mocap position sent as vision", unit="m")] | None = None
+    bat: Annotated[float, _float("Battery remaining, 0–1", lo=0.0, hi=1.0)] | None = None
+    volt: Annotated[float, _float("Battery voltage", unit="V")] | None = None
+    rtt: Annotated[float, _float("Link round-trip time from TIMESYNC", unit="s")] | None = None
+    hb_age: Annotated[float, _float("Age of the last heartbeat", unit="s")] | None = None
+    vis_rate: Annotated[float, _float("Vision samples sent per second", unit="Hz", lo=0.0)] = _always(0.0)
+    vis_age: Annotated[float, _float("Age of the last vision sample sent", unit="s")] | None = None
+    vis_fused: Annotated[bool, _doc("The autopilot's estimate follows the vision input")] = _always(False)
+    ofb: Annotated[bool, _doc("Offboard setpoints are being streamed to the autopilot")] = _always(False)
+    setup_ok: Annotated[bool, _doc("The arena's required autopilot parameters are set")] = _always(False)
+    fs: Annotated[Strs, _doc("Active failsafes or warnings")] = _always(())
+    tp: Annotated[int, _int("Publish time", unit="ns")] = _always(0)
+
+    def check(self) -> tuple[str, str] | None:
+        return super().check() or _quat_problem(self.q, "q")
+
+
+@payload
+class Telemetry(Payload, frozen=True):
+    """One raw MAVLink message from the autopilot, its fields as a map."""
+
+    SCHEMA = "Telemetry"
+    DOC = "One raw MAVLink message from the autopilot: its name and fields."
+    t: Annotated[int, _int("Receive time", unit="ns")]
+    msg: Annotated[Str, _doc("MAVLink message name")]
+    f: Annotated[Map, _doc("Message fields by MAVLink name")] = _always({})
+
+
+_EVENT_KINDS = ("statustext", "mode", "armed", "failsafe", "command", "safety", "link", "setup", "info")
+
+
+@payload
+class Event(Payload, frozen=True):
+    """Something that happened: status text, a mode or arming change, a failsafe, a command result."""
+
+    SCHEMA = "Event"
+    DOC = "Something that happened to a vehicle or service; severity as MAV_SEVERITY (0 emergency … 7 debug)."
+    t: Annotated[int, _int("Time it happened", unit="ns")]
+    kind: Annotated[Str, _doc(", ".join(_EVENT_KINDS), choices=_EVENT_KINDS)]
+    text: Annotated[Str, _doc("Human-readable text")]
+    sev: Annotated[int, _int("Severity (MAV_SEVERITY)", lo=0, hi=7)] = _always(6)
+    data: Annotated[Map, _doc("Details")] = _always({})
+
+
+COMMAND_OPS = (
+    "arm",
+    "disarm",
+    "kill",
+    "takeoff",
+    "land",
+    "hold",
+    "mode",
+    "goto",
+    "reboot",
+    "param_get",
+    "param_set",
+    "check",
+    "setup",
+    "ping",
+    "start",
+    "stop",
+)
+
+
+@payload
+class Command(Payload, frozen=True):
+    """A request to a vehicle's gateway (or a service), answered by a :class:`CommandResult`."""
+
+    SCHEMA = "Command"
+    DOC = "A command; `args` per op: takeoff {height}, mode {mode}, goto {p, yaw}, param_get {name}, …"
+    op: Annotated[Str, _doc("Operation", choices=COMMAND_OPS)]
+    args: Annotated[Map, _doc("Arguments of the operation")] = _always({})
+    src: Annotated[Str, _doc("Who sends it (host/program)")] = _always("")
+    timeout: Annotated[float, _float("How long the caller waits", unit="s", lo=0.0, hi=600.0)] = _always(5.0)
+    t: Annotated[int, _int("Time sent", unit="ns")] = _always(0)
+
+
+RESULTS = (
+    "ACCEPTED",
+    "TEMPORARILY_REJECTED",
+    "DENIED",
+    "UNSUPPORTED",
+    "FAILED",
+    "IN_PROGRESS",
+    "CANCELLED",
+    "TIMEOUT",
+    "REFUSED",
+    "ERROR",
+)
+
+
+@payload
+class CommandResult(Payload, frozen=True):
+    """The answer to a :class:`Command`: the autopilot's result, a timeout, or a refusal with its reason."""
+
+    SCHEMA = "CommandResult"
+    DOC = "Answer to a Command: MAV_RESULT name, TIMEOUT, REFUSED (safety rules) or ERROR (bad request)."
+    ok: Annotated[bool, _doc("True when the command succeeded")]
+    result: Annotated[Str, _doc("Outcome", choices=RESULTS)]
+    reason: Annotated[Str, _doc("Why, in words")] = _always("")
+    value: Annotated[Map, _doc("Returned data (e.g. parameter values)")] = _always({})
+    t: Annotated[int, _int("Time answered", unit="ns")] = _always(0)
+
+
+@payload
+class Setpoint(Payload, frozen=True):
+    """An offboard setpoint in the arena NED frame, valid for ``lease`` seconds."""
+
+    SCHEMA = "Setpoint"
+    DOC = "Offboard setpoint in the arena NED frame; forwarded only while its lease runs."
+    t: Annotated[int, _int("Time sent", unit="ns")]
+    lease: Annotated[float, _float("How long it stays valid", unit="s", lo=0.05, hi=5.0)] = _always(0.5)
+    p: Annotated[Vec3, _doc("Position north, east, down", unit="m")] | None = None
+    v: Annotated[Vec3, _doc("Velocity (or feed-forward with p)", unit="m/s")] | None = None
+    yaw: Annotated[float, _float("Yaw", unit="rad")] | None = None
+    yr: Annotated[float, _float("Yaw rate", unit="rad/s")] | None = None
+    src: Annotated[Str, _doc("Who sends it")] = _always("")
+
+    def check(self) -> tuple[str, str] | None:
+        if problem := super().check():
+            return problem
+        if self.p is None and self.v is None:
+            return "p", "a setpoint needs a position (p) or a velocity (v)"
+        if self.yaw is not None and self.yr is not None:
+            return "yr", "give yaw or yaw rate, not both"
+        return None
+
+
+@payload
+class Estop(Payload, frozen=True):
+    """Stop everything: every gateway lands its vehicle (or cuts its motors with ``kill``)."""
+
+    SCHEMA = "Estop"
+    DOC = "Emergency stop for every vehicle: land, or kill motors when `kill` is true."
+    t: Annotated[int, _int("Time sent", unit="ns")]
+    kill: Annotated[bool, _doc("Cut motors instead of landing")] = _always(False)
+    reason: Annotated[Str, _doc("Why")] = _always("")
+    src: Annotated[Str, _doc("Who sent it")] = _always("")
+
+
+@payload
+class Stats(Payload, frozen=True):
+    """A service's counters, published every second."""
+
+    SCHEMA = "Stats"
+    DOC = "A service's counters: messages in/out, rejected inputs by reason, rates, latencies, resources."
+    t: Annotated[int, _int("Time of the snapshot", unit="ns")]
+    service: Annotated[Str, _doc("Service id")]
+    host: Annotated[Str, _doc("Host name")]
+    pid: Annotated[int, _int("Process id")] = _always(0)
+    up: Annotated[float, _float("Uptime", unit="s")] = _always(0.0)
+    counts: Annotated[Map, _doc("Counters since start (in, out, …)")] = _always({})
+    rejected: Annotated[Map, _doc("Rejected inputs since start, by reason")] = _always({})
+    rates: Annotated[Map, _doc("Per-second rates over the last interval", unit="Hz")] = _always({})
+    lat: Annotated[Map, _doc("Latency figures (p50, p99, max) over the last interval", unit="s")] = _always(
+        {}
+    )
+    cpu: Annotated[float, _float("CPU use over the last interval, percent of one core")] = _always(0.0)
+    rss: Annotated[int, _int("Resident memory", unit="byte")] = _always(0)
+    vehicle: Annotated[Str, _doc("Vehicle served, if any")] = _always("")
+
+
+# -- which type a sample carries -----------------------------------------------------------------------
+
+_KIND_TO_TYPE: dict[str, type[Payload]] = {
+    "mocap": MocapPose,
+    "pose": Pose,
+    "vision": Pose,
+    "truth": Pose,
+    "state": State,
+    "telemetry": Telemetry,
+    "events": Event,
+    "setpoint": Setpoint,
+    "estop": Estop,
+    "stats": Stats,
+    "bodies": MocapPose,
+    "cmd": Command,
+    "rec": Command,
+}
+
+
+def type_for_key(key: str) -> type[Payload]:
+    """The payload type a key carries (queries carry :class:`Command`)."""
+    try:
+        kind = keys.parse(key).kind
+    except InvalidName as exc:
+        raise PayloadError(str(exc), key=key) from None
+    if kind not in _KIND_TO_TYPE:
+        raise PayloadError("this key carries no payload", key=key)
+    return _KIND_TO_TYPE[kind]
+
+
+def type_for_encoding(encoding: str) -> type[Payload] | None:
+    """The payload type named by an ``application/msgpack;arena.X/N`` encoding, if any."""
+    if not encoding.startswith(ENCODING_PREFIX):
+        return None
+    schema = encoding[len(ENCODING_PREFIX) :]
+    if not schema.startswith("arena."):
+        return None
+    name, _, version = schema[len("arena.") :].partition("/")
+    cls = REGISTRY.get(name)
+    if cls is None:
+        raise PayloadError(f"unknown schema {schema!r}")
+    if version != str(cls.VERSION):
+        raise PayloadError(
+            f"schema version {version!r} not supported (this build speaks {cls.VERSION})", type_name=name
+        )
+    return cls
+
+
+def decode_any(key: str, raw: bytes, encoding: str = "") -> Payload:
+    """Decode a payload as the type its key carries.
+
+    An encoding that names a schema must name that same type (a ``State`` sent on a vision key is
+    refused, never handed on as a State); keys outside the table are decoded by their encoding.
+    """
+    return _type_for(key, encoding).decode(raw, key)
+
+
+@functools.lru_cache(maxsize=4096)  # a refused pair raises, so only pairs that decode are remembered
+def _type_for(key: str, encoding: str) -> type[Payload]:
+    by_encoding = type_for_encoding(encoding) if encoding else None
+    try:
+        by_key: type[Payload] | None = type_for_key(key)
+    except PayloadError:
+        if by_encoding is None:
+            raise
+        by_key = None
+    if by_key is Command and by_encoding is CommandResult:
+        by_key = CommandResult  # a command key carries the query and its reply
+    if by_key is not None and by_encoding is not None and by_encoding is not by_key:
+        raise PayloadError(
+            f"a {by_encoding.SCHEMA} payload on a key that carries {by_key.SCHEMA}",
+            key=key,
+            type_name=by_key.SCHEMA,
+        )
+    cls = by_key or by_encoding
+    assert cls is not None
+    return cls
+
+
+# -- JSON ------------------------------------------------------------------------------------------------
+
+_JSON_KIND: dict[str, dict[str, Any]] = {
+    "int": {"type": "integer"},
+    "float": {"type": "number"},
+    "bool": {"type": "boolean"},
+    "str": {"type": "string"},
+    "vec3": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+    "quat": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
+    "strs": {"type": "array", "items": {"type": "string"}},
+    "map": {"type": "object"},
+}
+
+
+def json_schema(cls: type[Payload]) -> dict[str, Any]:
+    """JSON Schema (draft 2020-12) of one payload type's JSON rendering, generated from its Struct fields.
+
+    It describes :func:`to_jsonable`'s output rather than the msgpack bytes, so NaN is ``null``.
+    """
+    props: dict[str, Any] = {}
+    required: list[str] = []
+    for _, spec in cls._specs:
+        prop = dict(_JSON_KIND[spec.kind])
+        if spec.choices:
+            prop["enum"] = list(spec.choices)
+        desc = spec.doc + (f" [{spec.unit}]" if spec.unit else "")
+        prop["description"] = desc
+        if spec.lo is not None:
+            prop["minimum"] = spec.lo
+        if spec.hi is not None:
+            prop["maximum"] = spec.hi
+        if spec.nan_ok:
+            prop = {"description": desc, "anyOf": [{"type": "number"}, {"type": "null"}]}
+        if spec.optional:
+            prop = {
+                "description": desc,
+                "anyOf": [{k: v for k, v in prop.items() if k != "description"}, {"type": "null"}],
+            }
+        props[spec.wire] = prop
+        if spec.required:
+            required.append(spec.wire)
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": f"arena.{cls.SCHEMA}/{cls.VERSION}",
+        "title": f"arena.{cls.SCHEMA}",
+        "description": cls.DOC,
+        "type": "object",
+        "properties": props,
+        "required": required,
+        "additionalProperties": True,
+    }
+
+
+def to_jsonable(p: Payload) -> dict[str, Any]:
+    """The wire map with NaN replaced by ``None`` so it is valid JSON."""
+
+    def fix(v: Any) -> Any:
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, list):
+            return [fix(x) for x in v]
+        if isinstance(v, dict):
+            return {k: fix(x) for k, x in v.items()}
+        return v
+
+    return {k: fix(v) for k, v in p.to_dict().items()}

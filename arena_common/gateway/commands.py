@@ -1,0 +1,414 @@
+"""The gateway's command queryable: arena operations turned into MAVLink exchanges with the autopilot.
+
+Every :class:`~arena_common.core.wire.Command` on ``arena/<drone>/cmd`` is answered with a
+:class:`~arena_common.core.wire.CommandResult` whose ``result`` is the autopilot's COMMAND_ACK result
+(``ACCEPTED``, ``TEMPORARILY_REJECTED``, ``DENIED``…), ``TIMEOUT`` after the retries, ``REFUSED`` with the
+reason when the arena's rules forbid it, ``FAILED`` when the autopilot accepted but did not do it, or
+``ERROR`` for a malformed request.  Operations and their ``args``:
+
+=============  ==========================================  ==================================================
+op             args                                        what happens
+=============  ==========================================  ==================================================
+arm            —                                           refused without heartbeat, with the arena
+                                                           parameters unset (unless ``require_setup`` is
+                                                           false) or with stale vision; then
+                                                           COMPONENT_ARM_DISARM, confirmed by the heartbeat
+disarm         —                                           COMPONENT_ARM_DISARM(0) (PX4 refuses in the air)
+kill           —                                           forced disarm (21196): motors stop, even in the air
+takeoff        height (m, default 1.0)                     MIS_TAKEOFF_ALT := height, then NAV_TAKEOFF with
+                                                           NaN altitude (PX4 climbs to MIS_TAKEOFF_ALT above
+                                                           home, no global frame needed), AUTO.TAKEOFF
+land           —                                           NAV_LAND at the current position (AUTO.LAND)
+hold           —                                           DO_SET_MODE AUTO.LOITER, confirmed by heartbeat
+mode           mode (PX4 name: OFFBOARD, AUTO.LAND…)       DO_SET_MODE, confirmed by heartbeat; OFFBOARD is
+                                                           refused unless a setpoint stream is live
+goto           p [n, e, d] m, yaw (rad, default current),  the gateway streams a position carrot toward p
+               tol (m, default 0.1), wait (bool)           (refused outside the safe volume or on the
+                                                           ground), switches to OFFBOARD, and holds p until
+                                                           a user stream or another mode takes over; with
+                                                           ``wait`` it answers once within ``tol``
+reboot         —                                           PREFLIGHT_REBOOT_SHUTDOWN(1), refused when armed;
+                                                           answers once the autopilot is back (its boot
+                                                           clock restarted)
+param_get      name                                        value {name, value, type}
+param_set      name, value                                 written in the vehicle's type, read back
+check          —                                           the arena parameters, value {ok, params: …}
+setup          —                                           refused when armed; writes the differing ones;
+                                                           when one needs a reboot (the autopilot's own
+                                                           metadata says which), reboots the autopilot and
+                                                           waits for it; then checks every value again.
+                                                           Until that reboot, arming is refused
+ping           —                                           value {link, mode, armed, rtt, …}
+=============  ==========================================  ==================================================
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from arena_common.core import wire
+from arena_common.core.config import ArenaSpec, VehicleSpec
+from arena_common.gateway.events import EventSink
+from arena_common.gateway.setpoints import SetpointForwarder, outside, yaw_problem
+from arena_common.gateway.state import VehicleState
+from arena_common.gateway.timesync import TimeSync
+from arena_common.gateway.vision import VisionSender
+from arena_common.mavlink import px4
+from arena_common.mavlink.protocols import MavCommander, ParamClient, SetupChecker, param_equal
+
+__all__ = ["CommandExecutor"]
+
+NAN = math.nan
+
+
+class _BadArgs(ValueError):
+    pass
+
+
+def _result(result: str, reason: str = "", **value: Any) -> wire.CommandResult:
+    return wire.CommandResult(ok=result == "ACCEPTED", result=result, reason=reason, value=value)
+
+
+def _refused(reason: str) -> wire.CommandResult:
+    return wire.CommandResult(ok=False, result="REFUSED", reason=reason)
+
+
+def _number(args: Mapping[str, Any], name: str, default: float | None = None) -> float:
+    value = args.get(name, default)
+    if value is None:
+        raise _BadArgs(f"missing argument {name!r}")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise _BadArgs(f"argument {name!r} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _vec3(args: Mapping[str, Any], name: str) -> tuple[float, float, float]:
+    value = args.get(name)
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise _BadArgs(f"argument {name!r} must be [north, east, down] in metres, got {value!r}")
+    out = tuple(_number({"x": x}, "x") for x in value)
+    return out[0], out[1], out[2]
+
+
+def _string(args: Mapping[str, Any], name: str) -> str:
+    value = args.get(name)
+    if not isinstance(value, str) or not value:
+        raise _BadArgs(f"argument {name!r} must be a non-empty string, got {value!r}")
+    return value
+
+
+class CommandExecutor:
+    """Answers the commands of one vehicle (see the module's table); :meth:`handle` serves the queryable."""
+
+    def __init__(
+        self,
+        *,
+        vehicle: VehicleSpec,
+        arena: ArenaSpec,
+        state: VehicleState,
+        vision: VisionSender,
+        commander: MavCommander,
+        params: ParamClient,
+        setup: SetupChecker,
+        forwarder: SetpointForwarder,
+        timesync: TimeSync,
+        events: EventSink,
+        vision_stale: float = 0.2,
+        goto_tolerance: float = 0.1,
+    ) -> None:
+        self.vehicle = vehicle
+        self.arena = arena
+        self.state = state
+        self.vision = vision
+        self.commander = commander
+        self.params = params
+        self.setup = setup
+        self.forwarder = forwarder
+        self.timesync = timesync
+        self.events = events
+        self.vision_stale = vision_stale
+        self.goto_tolerance = goto_tolerance
+        self._ops: dict[str, Callable[[Mapping[str, Any], float], wire.CommandResult]] = {
+            "arm": self._arm,
+            "disarm": self._disarm,
+            "kill": self._kill,
+            "takeoff": self._takeoff,
+            "land": self._land,
+            "hold": lambda a, d: self._set_mode("AUTO.LOITER", d),
+            "mode": self._mode,
+            "goto": self._goto,
+            "reboot": self._reboot,
+            "param_get": self._param_get,
+            "param_set": self._param_set,
+            "check": self._check,
+            "setup": self._setup,
+            "ping": self._ping,
+        }
+
+    # -- entry ---------------------------------------------------------------------------------------
+    def handle(self, key: str, cmd: wire.Command) -> wire.CommandResult:
+        """Run one command within its ``timeout`` (less a margin for the answer to travel)."""
+        started_ns = wire.now_ns()
+        deadline = time.monotonic() + max(0.5, cmd.timeout - 0.3)
+        op = self._ops.get(cmd.op)
+        if op is None:
+            result = wire.CommandResult(False, "ERROR", f"{cmd.op!r} is not a vehicle operation")
+        elif cmd.op != "ping" and not self.commander.link.can_send():
+            heard = (
+                "link lost: no heartbeat from the autopilot" if self.state.hb_count else "nothing heard yet"
+            )
+            result = _refused(f"no link to the autopilot ({heard})")
+        else:
+            try:
+                result = op(cmd.args, deadline)
+            except (_BadArgs, px4.Px4Error) as exc:
+                result = wire.CommandResult(False, "ERROR", f"{cmd.op}: {exc}")
+        if not result.ok and result.result not in ("REFUSED", "ERROR"):
+            texts = self._texts_since(started_ns)
+            if texts:
+                reason = f"{result.reason}; " if result.reason else ""
+                result = result.replace(reason=f"{reason}autopilot says: {' | '.join(texts)}")
+        if cmd.op != "ping":
+            text = f"{cmd.op} → {result.result}" + (f": {result.reason}" if result.reason else "")
+            self.events.emit(
+                "command", text, 6 if result.ok else 4, op=cmd.op, result=result.result, src=cmd.src
+            )
+        return result
+
+    def _texts_since(self, t_ns: int) -> list[str]:
+        texts = [
+            e.text
+            for e in list(self.events.recent)
+            if e.t >= t_ns and e.kind in ("statustext", "failsafe") and e.sev <= 4
+        ]
+        return list(dict.fromkeys(texts))[-4:]
+
+    # -- helpers -------------------------------------------------------------------------------------
+    def _confirm(self, predicate: Callable[[], bool], deadline: float) -> bool:
+        if predicate():
+            return True
+        self.commander.send(px4.MAV_CMD_REQUEST_MESSAGE, (0,))  # a heartbeat now, not in up to 1 s
+        return self.state.wait(predicate, deadline)
+
+    def _set_mode(self, name: str, deadline: float) -> wire.CommandResult:
+        main, sub = px4.mode_from_name(name)
+        expected = px4.mode_name(main, sub)
+        result = self.commander.command(
+            px4.MAV_CMD_DO_SET_MODE, (px4.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub), deadline
+        )
+        if result != "ACCEPTED":
+            return _result(result, f"{expected} not accepted")
+        if not self._confirm(lambda: self.state.mode == expected, deadline):
+            return _result("FAILED", f"{expected} acknowledged, but the heartbeat reports {self.state.mode}")
+        return _result("ACCEPTED", mode=expected)
+
+    def arm_refusal(self, deadline: float) -> str | None:
+        """Why arming is refused under the arena's rules, or None."""
+        if not self.state.link:
+            return "no heartbeat from the autopilot"
+        if self.setup.reboot_pending:
+            return (
+                f"{', '.join(self.setup.reboot_pending)} written but in effect only after a reboot: "
+                f"`arena px4 reboot {self.vehicle.name}` (or power-cycle the vehicle)"
+            )
+        if self.vehicle.require_setup:
+            if self.setup.ok is None:
+                self.setup.check(deadline)
+            if self.setup.ok is not True:
+                report = self.setup.report
+                wrong = ", ".join(report.get("wrong", []) + report.get("missing", [])) or "not checked"
+                return f"arena parameters not set ({wrong}): run `arena px4 setup {self.vehicle.name}`"
+        age = self.vision.age(time.monotonic())
+        if age is None:
+            return "no vision pose sent to the autopilot yet"
+        if age > self.vision_stale:
+            return f"vision stale: last pose sent {age:.2f} s ago"
+        return None
+
+    # -- operations ----------------------------------------------------------------------------------
+    def _arm(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        reason = self.arm_refusal(deadline)
+        if reason:
+            return _refused(reason)
+        result = self.commander.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, (1, 0), deadline)
+        if result == "ACCEPTED" and not self._confirm(lambda: self.state.armed, deadline):
+            return _result("FAILED", "arming acknowledged, but the heartbeat reports disarmed")
+        return _result(result)
+
+    def _disarm(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        result = self.commander.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, (0, 0), deadline)
+        if result == "ACCEPTED" and not self._confirm(lambda: not self.state.armed, deadline):
+            return _result("FAILED", "disarming acknowledged, but the heartbeat reports armed")
+        return _result(result)
+
+    def _kill(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        self.forwarder.latch("kill")
+        params = (0, px4.ARM_DISARM_FORCE_MAGIC)
+        return _result(self.commander.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, params, deadline))
+
+    def _takeoff(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        height = _number(args, "height", 1.0)
+        ceiling = -self.arena.safe_box()[2][0]
+        if not 0.2 <= height <= ceiling:
+            return _refused(f"takeoff height {height:.2f} m outside [0.20, {ceiling:.2f}] (the safe volume)")
+        back = self.params.write("MIS_TAKEOFF_ALT", height, px4.MAV_PARAM_TYPE_REAL32, deadline)
+        if back is None:
+            return _result("TIMEOUT", "could not set MIS_TAKEOFF_ALT")
+        result = self.commander.command(px4.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, NAN, NAN, NAN, NAN), deadline)
+        return _result(result, height=height)
+
+    def _land(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        return _result(self.commander.command(px4.MAV_CMD_NAV_LAND, (0, 0, 0, NAN, NAN, NAN, NAN), deadline))
+
+    def _mode(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        main, sub = px4.mode_from_name(_string(args, "mode"))
+        name = px4.mode_name(main, sub)
+        if main != px4.MAIN_OFFBOARD:
+            return self._set_mode(name, deadline)
+        before = self.forwarder.latched
+        self.forwarder.unlatch()
+        if self.state.mode != "OFFBOARD":
+            until = min(deadline, time.monotonic() + self.forwarder.prestream + 0.5)
+            while not self.forwarder.live() and time.monotonic() < until:
+                time.sleep(0.02)
+            if not self.forwarder.live():
+                self.forwarder.restore_latch(before)
+                return _refused(
+                    "no live setpoint stream: stream setpoints (within their lease) for "
+                    f"{self.forwarder.prestream:.1f} s first, or use goto"
+                )
+        return self._set_mode(name, deadline)
+
+    def _goto(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        goal = _vec3(args, "p")
+        yaw = _number(args, "yaw") if args.get("yaw") is not None else self.state.yaw()
+        tol = _number(args, "tol", self.goto_tolerance)
+        wait = bool(args.get("wait", False))
+        problem = yaw_problem(yaw)
+        if problem:  # every argument is checked before the stream starts
+            raise _BadArgs(problem)
+        if tol <= 0.0:
+            raise _BadArgs(f"argument 'tol' must be a positive distance in metres, got {tol!r}")
+        where = outside(goal, self.arena.safe_box())
+        if where:
+            return _refused(f"goal outside the safe volume: {where}")
+        if not self.state.armed:
+            return _refused("not armed")
+        if self.state.landed in ("on_ground", "undefined"):
+            return _refused("on the ground: take off first")
+        before = self.forwarder.latched
+        self.forwarder.start_goto(goal, yaw)
+        if self.state.mode != "OFFBOARD":
+            while not self.forwarder.live() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            res = self._set_mode("OFFBOARD", deadline)
+            if not res.ok:
+                self.forwarder.cancel_goto(f"OFFBOARD not engaged ({res.result})")
+                self.forwarder.restore_latch(before)
+                return res
+        value: dict[str, Any] = {"goal": list(goal)}
+        if wait:
+            reached = self.state.wait(lambda: self._distance(goal) <= tol, deadline)
+            value["dist"] = self._distance(goal)
+            if not reached:
+                return _result(
+                    "IN_PROGRESS", f"still {value['dist']:.2f} m from the goal; holding it", **value
+                )
+        return _result("ACCEPTED", **value)
+
+    def _distance(self, goal: tuple[float, float, float]) -> float:
+        p = self.state.position(time.monotonic())
+        return math.dist(p, goal) if p is not None else math.inf
+
+    def _reboot(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        """Reboot the autopilot and wait until it is back (its boot clock restarted, heartbeats again)."""
+        if self.state.armed:
+            return _refused("armed: disarm first")
+        s = self.state
+        before, boot_ms = s.reboots, s.boot_ms
+        result = self.commander.command(px4.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, (1,), deadline)
+        if result != "ACCEPTED":
+            return _result(result, "the autopilot did not accept PREFLIGHT_REBOOT_SHUTDOWN: power-cycle it")
+        # Back: its boot clock restarted (a reboot soon after the last one is not a jump of > 1 s).
+        if not s.wait(lambda: (s.reboots > before or 0 <= s.boot_ms < boot_ms) and s.link, deadline):
+            return _result("TIMEOUT", "reboot accepted, but the autopilot is not back yet")
+        return _result("ACCEPTED", reboots=self.state.reboots)
+
+    def _param_get(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        name = _string(args, "name")
+        px4.param_name_bytes(name)
+        got = self.params.read([name], deadline)
+        if name not in got:
+            return _result("TIMEOUT", f"no PARAM_VALUE for {name} (unknown parameter?)")
+        value, ptype = got[name]
+        return _result("ACCEPTED", name=name, value=value, type=ptype)
+
+    def _param_set(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        name = _string(args, "name")
+        want = _number(args, "value")
+        px4.param_name_bytes(name)
+        got = self.params.read([name], deadline)
+        if name not in got:
+            return _result("TIMEOUT", f"no PARAM_VALUE for {name} (unknown parameter?)")
+        ptype = got[name][1]
+        back = self.params.write(name, want, ptype, deadline)
+        if back is None:
+            return _result("TIMEOUT", f"{name} not confirmed by the autopilot")
+        if not param_equal(
+            back[0], px4.decode_param_value(px4.encode_param_value(want, ptype), ptype), ptype
+        ):
+            return _result("FAILED", f"{name} reads back {back[0]}", name=name, value=back[0], type=ptype)
+        if name in self.setup.required:
+            self.setup.ok = None  # re-checked before the next arming
+        return _result("ACCEPTED", name=name, value=back[0], type=ptype)
+
+    def _check(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        report = self.setup.check(deadline)
+        if not report["complete"]:
+            return _result("TIMEOUT", "no parameter answered", **report)
+        if report["ok"]:
+            return _result("ACCEPTED", **report)
+        return _result(
+            "FAILED", f"{len(report['wrong']) + len(report['missing'])} parameters differ", **report
+        )
+
+    def _setup(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        if self.state.armed:
+            return _refused("armed: parameters are written on the ground only")
+        report = self.setup.setup(deadline)
+        if not report["complete"]:
+            return _result("TIMEOUT", "no parameter answered", **report)
+        if report["ok"] and self.setup.reboot_pending:
+            pending = ", ".join(self.setup.reboot_pending)
+            rebooted = self._reboot({}, deadline)
+            if not rebooted.ok:
+                return _result(
+                    "FAILED",
+                    f"{pending} take effect only after a reboot: {rebooted.result} ({rebooted.reason}); "
+                    "arming is refused until the autopilot reboots",
+                    **report,
+                )
+            verified = self.setup.check(deadline)
+            report = {**report, **verified, "rebooted": True}
+        if report["ok"]:
+            rebooted_for = ", ".join(report["reboot_required"])
+            note = f" (rebooted for {rebooted_for})" if report.get("rebooted") else ""
+            return _result("ACCEPTED", f"arena parameters set and verified{note}", **report)
+        return _result("FAILED", "; ".join(report["failed"]) or "parameters still differ", **report)
+
+    def _ping(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        now = time.monotonic()
+        s = self.state
+        return _result(
+            "ACCEPTED",
+            sysid=self.vehicle.system_id,
+            link=s.link,
+            hb_age=s.hb_age(now),
+            mode=s.mode,
+            armed=s.armed,
+            rtt=self.timesync.rtt_s,
+            setup_ok=self.setup.ok,
+        )

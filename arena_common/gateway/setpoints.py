@@ -1,0 +1,347 @@
+"""Offboard setpoints: the arena's safety rules, leases, the stream to PX4 and the gateway's own goto.
+
+The rules, in the order they apply:
+
+- A setpoint (:class:`~arena_common.core.wire.Setpoint`, arena NED) is refused — an Event of kind
+  ``safety`` says why, and it never reaches the vehicle — when it does not decode (NaN, infinity…), when
+  its position lies outside ``arena.safe_box()``, when its horizontal speed exceeds ``arena.max_speed``
+  or its vertical speed ``arena.max_climb``, when its yaw lies beyond ±``MAX_YAW`` rad (a yaw within is
+  wrapped to ±π) or its yaw rate beyond ``MAX_YAW_RATE``, or when it is a velocity that leads further out
+  of the safe volume while the vehicle already is outside it.
+- An accepted setpoint is sent at once as SET_POSITION_TARGET_LOCAL_NED (MAV_FRAME_LOCAL_NED, type mask
+  from the fields given) and repeated at ``rate`` Hz while its lease runs (``lease`` s from its arrival,
+  renewed by every accepted setpoint).  When the lease expires, streaming stops (an Event says so): the
+  silence is what lets PX4 detect offboard loss and take its COM_OBL_RC_ACT action.  The gateway never
+  streams on its own to keep a vehicle in offboard.
+- Whenever the vehicle leaves OFFBOARD (a failsafe, a land, hold or mode command, a ground station, an
+  estop), the forwarder *latches*: it stops sending and holds user setpoints back, so that neither PX4
+  nor a late user stream can re-engage offboard by itself.  Only an explicit ``mode OFFBOARD`` or
+  ``goto`` command releases the latch.
+- ``goto`` is the gateway's own stream: a position carrot that moves from the vehicle toward the goal
+  at ``goto_speed`` (horizontal) and ``goto_climb`` (vertical), then holds the goal indefinitely, until
+  a user setpoint takes over, another command changes the mode, or the vehicle leaves OFFBOARD.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from arena_common.bus.session import Subscription
+from arena_common.core import wire
+from arena_common.core.config import ArenaSpec
+from arena_common.gateway.events import EventSink
+from arena_common.mavlink import px4
+from arena_common.mavlink.link import MavlinkLink
+from arena_common.runtime.service import Stats
+
+__all__ = ["MAX_YAW", "MAX_YAW_RATE", "SetpointForwarder", "type_mask", "wrap_yaw", "yaw_problem"]
+
+Vec3 = tuple[float, float, float]
+
+MAX_YAW = 1000.0  # rad: a larger yaw is a mistake, not a heading (it would not even fit MAVLink's float32)
+MAX_YAW_RATE = 2.0 * math.pi  # rad/s
+
+
+def yaw_problem(yaw: float | None, yr: float | None = None) -> str | None:
+    """Why a yaw (rad) or yaw rate (rad/s) must not reach the vehicle, or None."""
+    if yaw is not None and not (math.isfinite(yaw) and abs(yaw) <= MAX_YAW):
+        return f"yaw {yaw!r} rad is not a finite angle within ±{MAX_YAW:g} rad"
+    if yr is not None and not (math.isfinite(yr) and abs(yr) <= MAX_YAW_RATE):
+        return f"yaw rate {yr!r} rad/s beyond ±{MAX_YAW_RATE:.2f} rad/s"
+    return None
+
+
+def wrap_yaw(yaw: float | None) -> float | None:
+    """``yaw`` wrapped to [-π, π] (None stays None); check it with :func:`yaw_problem` first."""
+    return None if yaw is None else math.remainder(yaw, 2.0 * math.pi)
+
+
+def type_mask(sp: wire.Setpoint) -> int:
+    """SET_POSITION_TARGET_LOCAL_NED type_mask for the fields a setpoint gives (acceleration ignored)."""
+    mask = px4.TYPEMASK_ACCELERATION
+    if sp.p is None:
+        mask |= px4.TYPEMASK_POSITION
+    if sp.v is None:
+        mask |= px4.TYPEMASK_VELOCITY
+    if sp.yaw is None:
+        mask |= px4.TYPEMASK_YAW_IGNORE
+    if sp.yr is None:
+        mask |= px4.TYPEMASK_YAW_RATE_IGNORE
+    return mask
+
+
+@dataclass(slots=True)
+class _Stream:
+    source: str  # "user" or "goto"
+    p: Vec3 | None
+    v: Vec3 | None
+    yaw: float | None
+    yr: float | None
+    mask: int
+    expires: float
+    goal: Vec3 | None = None
+
+
+def outside(p: Vec3, box: tuple[tuple[float, float], tuple[float, float], tuple[float, float]]) -> str | None:
+    """Which limit of the safe box ``p`` breaks, in words, or None."""
+    for i, axis in enumerate(("north", "east", "down")):
+        lo, hi = box[i]
+        if not lo <= p[i] <= hi:
+            return f"{axis} {p[i]:.2f} m outside [{lo:.2f}, {hi:.2f}]"
+    return None
+
+
+class SetpointForwarder:
+    """Checks, leases and streams offboard setpoints to one vehicle (see the module's rules)."""
+
+    def __init__(
+        self,
+        link: MavlinkLink,
+        target_system: int,
+        arena: ArenaSpec,
+        events: EventSink,
+        *,
+        rate: float = 20.0,
+        max_rate: float = 50.0,
+        prestream: float = 0.5,
+        goto_speed: float = 1.0,
+        goto_climb: float = 0.5,
+        position: Callable[[], Vec3 | None] = lambda: None,
+        stats: Stats | None = None,
+    ) -> None:
+        self.link = link
+        self.target_system = target_system
+        self.arena = arena
+        self.box = arena.safe_box()
+        self.events = events
+        self.period = 1.0 / rate
+        self.min_gap = 0.7 / max_rate  # tolerate jitter: a user streaming at max_rate is forwarded whole
+        self.prestream = prestream
+        self.goto_speed = min(goto_speed, arena.max_speed)
+        self.goto_climb = min(goto_climb, arena.max_climb)
+        self.position = position
+        self.stats = stats or Stats()
+        self._lock = threading.RLock()
+        self._stream: _Stream | None = None
+        self._latched: str | None = None
+        self._since = math.inf
+        self._last_send = -math.inf
+        self._last_tick = time.monotonic()
+        self._t0 = time.monotonic()
+        self.sent = 0
+        self.refused = 0
+
+    # -- rules ---------------------------------------------------------------------------------------
+    def check(self, sp: wire.Setpoint) -> str | None:
+        """Why the setpoint must not reach the vehicle, or None."""
+        values = [*(sp.p or ()), *(sp.v or ()), sp.yaw or 0.0, sp.yr or 0.0]
+        if not all(math.isfinite(x) for x in values):
+            return "not a finite number"
+        problem = yaw_problem(sp.yaw, sp.yr)
+        if problem:
+            return problem
+        if sp.p is not None:
+            where = outside(sp.p, self.box)
+            if where:
+                return f"position outside the safe volume: {where}"
+        if sp.v is not None:
+            vn, ve, vd = sp.v
+            speed = math.hypot(vn, ve)
+            if speed > self.arena.max_speed + 1e-9:
+                return f"horizontal speed {speed:.2f} m/s above max_speed {self.arena.max_speed:.2f}"
+            if abs(vd) > self.arena.max_climb + 1e-9:
+                return f"vertical speed {abs(vd):.2f} m/s above max_climb {self.arena.max_climb:.2f}"
+            pos = self.position() if sp.p is None else None
+            if pos is not None:
+                for i, axis in enumerate(("north", "east", "down")):
+                    lo, hi = self.box[i]
+                    if (pos[i] < lo and sp.v[i] < 0) or (pos[i] > hi and sp.v[i] > 0):
+                        return f"velocity leads further out of the safe volume ({axis})"
+        return None
+
+    def refuse(self, reason: str) -> None:
+        """Count and announce a refused setpoint (one Event per reason per second)."""
+        self.refused += 1
+        self.stats.reject("setpoint")
+        self.events.emit("safety", f"setpoint refused: {reason}", 4, every=1.0, reason=reason)
+
+    # -- input ---------------------------------------------------------------------------------------
+    def offer(self, sp: wire.Setpoint, now: float | None = None) -> str | None:
+        """Accept a user setpoint (sent at once, then streamed while its lease runs) or refuse it."""
+        now = time.monotonic() if now is None else now
+        reason = self.check(sp)
+        if reason is not None:
+            self.refuse(reason)
+            return reason
+        with self._lock:
+            if self._stream is not None and self._stream.source == "goto":
+                self.events.emit("info", "user setpoints take over from goto", 6)
+            self._stream = _Stream("user", sp.p, sp.v, wrap_yaw(sp.yaw), sp.yr, type_mask(sp), now + sp.lease)
+            if self._latched is not None:
+                self.events.emit(
+                    "safety",
+                    f"setpoints held back: offboard was left ({self._latched}); command mode OFFBOARD",
+                    4,
+                    every=5.0,
+                )
+            elif now - self._last_send >= self.min_gap:
+                self._send(now)
+        return None
+
+    def start_goto(self, goal: Vec3, yaw: float | None, now: float | None = None) -> None:
+        """Stream toward ``goal`` (checked by the caller) and hold it; releases the latch.
+
+        The caller checks the goal and the yaw (:func:`yaw_problem`); a yaw out of range is a ValueError.
+        """
+        problem = yaw_problem(yaw)
+        if problem:
+            raise ValueError(problem)
+        yaw = wrap_yaw(yaw)
+        now = time.monotonic() if now is None else now
+        start = self.position() or goal
+        mask = px4.TYPEMASK_VELOCITY | px4.TYPEMASK_ACCELERATION | px4.TYPEMASK_YAW_RATE_IGNORE
+        if yaw is None:
+            mask |= px4.TYPEMASK_YAW_IGNORE
+        with self._lock:
+            self._latched = None
+            self._stream = _Stream("goto", start, None, yaw, None, mask, math.inf, goal)
+            self._last_tick = now
+            self._send(now)
+
+    def cancel_goto(self, reason: str) -> None:
+        """Stop the gateway's own stream (a user stream is left alone)."""
+        with self._lock:
+            if self._stream is not None and self._stream.source == "goto":
+                self._stream = None
+                self._since = math.inf
+                self.events.emit("info", f"goto stream stopped: {reason}", 6)
+
+    def latch(self, reason: str) -> None:
+        """Stop sending until :meth:`unlatch` (the vehicle left OFFBOARD, or an estop)."""
+        with self._lock:
+            if self._latched is None:
+                self._latched = reason
+                self._since = math.inf
+                if self._stream is not None:
+                    if self._stream.source == "goto":
+                        self._stream = None
+                    self.events.emit("info", f"offboard stream stopped: {reason}", 5)
+
+    def unlatch(self) -> None:
+        """Allow streaming again (an explicit request to engage offboard)."""
+        with self._lock:
+            self._latched = None
+
+    @property
+    def latched(self) -> str | None:
+        """Why streaming is held back, or None."""
+        return self._latched
+
+    def restore_latch(self, reason: str | None) -> None:
+        with self._lock:
+            if reason is not None and self._latched is None:
+                self._latched = reason
+                self._since = math.inf
+
+    def streaming(self, now: float | None = None) -> bool:
+        """Whether setpoints are being sent to the vehicle now."""
+        now = time.monotonic() if now is None else now
+        s = self._stream
+        return s is not None and self._latched is None and now <= s.expires and now - self._last_send < 0.5
+
+    def live(self, now: float | None = None) -> bool:
+        """Streaming for at least ``prestream`` s: PX4 will accept a switch to OFFBOARD."""
+        now = time.monotonic() if now is None else now
+        return self.streaming(now) and now - self._since >= self.prestream
+
+    def goto_goal(self) -> Vec3 | None:
+        s = self._stream
+        return s.goal if s is not None and s.source == "goto" else None
+
+    # -- output --------------------------------------------------------------------------------------
+    def tick(self, now: float | None = None) -> float:
+        """Expire leases, move the goto carrot, send when due; seconds until the next tick is needed."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            s = self._stream
+            dt, self._last_tick = now - self._last_tick, now
+            if s is None:
+                return self.period
+            if now > s.expires:
+                self._stream = None
+                self._since = math.inf
+                if self._latched is None:
+                    self.events.emit(
+                        "safety",
+                        "setpoint lease expired: offboard stream stopped: PX4 takes its offboard-loss action",
+                        4,
+                    )
+                return self.period
+            if self._latched is not None:
+                return self.period
+            if s.goal is not None and s.p is not None:
+                s.p = _toward(s.p, s.goal, self.goto_speed * dt, self.goto_climb * dt)
+            left = self._last_send + self.period - now
+            if left > 0:
+                return min(left, s.expires - now + 1e-3)
+            self._send(now)
+            return self.period
+
+    def _send(self, now: float) -> None:
+        s = self._stream
+        if s is None:
+            return
+        p = s.p or (0.0, 0.0, 0.0)
+        v = s.v or (0.0, 0.0, 0.0)
+        msg = self.link.mav.set_position_target_local_ned_encode(
+            int((now - self._t0) * 1000) & 0xFFFFFFFF,
+            self.target_system,
+            px4.MAV_COMP_ID_AUTOPILOT1,
+            px4.MAV_FRAME_LOCAL_NED,
+            s.mask,
+            p[0], p[1], p[2], v[0], v[1], v[2], 0.0, 0.0, 0.0,
+            s.yaw if s.yaw is not None else 0.0,
+            s.yr if s.yr is not None else 0.0,
+        )  # fmt: skip
+        if self.link.send(msg):
+            if self._since == math.inf or now - self._last_send > 3 * self.period:
+                self._since = now  # a new continuous stream begins
+            self._last_send = now
+            self.sent += 1
+            self.stats.count("setpoints")
+
+    def run(
+        self, sub: Subscription, stop: threading.Event, on_error: Callable[[str, BaseException], None]
+    ) -> None:
+        """The forwarder's thread: take setpoints from ``sub`` and stream until ``stop``.
+
+        A failure of one sample (or send) goes to ``on_error("setpoint", exc)`` and the stream goes on.
+        """
+        while not stop.is_set():
+            try:
+                wait = self.tick()
+                item = sub.get(max(0.001, min(wait, 0.05)))
+                if item is None:
+                    continue
+                if item.error is not None or item.payload is None:
+                    self.refuse(f"undecodable: {item.error}")
+                    continue
+                if not isinstance(item.payload, wire.Setpoint):
+                    self.refuse(f"not a Setpoint but a {type(item.payload).__name__}")
+                    continue
+                self.offer(item.payload)
+            except Exception as exc:  # one bad sample (or send) must never end the stream for good
+                on_error("setpoint", exc)
+                stop.wait(0.01)
+
+
+def _toward(p: Vec3, goal: Vec3, step_xy: float, step_z: float) -> Vec3:
+    dn, de, dd = goal[0] - p[0], goal[1] - p[1], goal[2] - p[2]
+    dist = math.hypot(dn, de)
+    k = 1.0 if dist <= step_xy or dist == 0.0 else step_xy / dist
+    dz = max(-step_z, min(step_z, dd))
+    return (p[0] + dn * k, p[1] + de * k, p[2] + dz)

@@ -1,0 +1,56 @@
+"""Raw autopilot messages published on ``arena/<drone>/telemetry/<MSG>``, rate-limited per type."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from arena_common.bus.session import Bus, Publisher
+from arena_common.core import keys, wire
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, (bytes, bytearray)):
+        return list(value)
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    return value
+
+
+class TelemetryPublisher:
+    """Publishes raw messages on ``arena/<drone>/telemetry/<MSG>``, at most ``rate`` Hz per message type.
+
+    :meth:`due` is asked before decoding, so a message type that is not due costs nothing.
+    """
+
+    def __init__(self, bus: Bus | None, drone: str, rate: float = 10.0, exclude: Iterable[int] = ()) -> None:
+        self.bus = bus
+        self.drone = drone
+        self.period = 1.0 / rate if rate > 0 else math.inf
+        self.exclude = frozenset(exclude)
+        self._next: dict[int, float] = {}
+        self._pubs: dict[str, Publisher[wire.Telemetry]] = {}
+        self.published = 0
+
+    def due(self, msgid: int, now: float) -> bool:
+        return self.bus is not None and now >= self._next.get(msgid, 0.0) and msgid not in self.exclude
+
+    def publish(self, msg: Any, now: float, t_ns: int) -> None:
+        """Publish one decoded message (the caller checked :meth:`due`)."""
+        self._next[msg.get_msgId()] = now + self.period
+        self.put(
+            msg.get_type(), {k: _plain(v) for k, v in msg.to_dict().items() if k != "mavpackettype"}, t_ns
+        )
+
+    def put(self, name: str, fields: Mapping[str, Any], t_ns: int) -> None:
+        """Publish fields under a message name (also used for the gateway's own measurements)."""
+        if self.bus is None:
+            return
+        pub = self._pubs.get(name)
+        if pub is None:
+            pub = self._pubs[name] = self.bus.stream_publisher(
+                keys.telemetry(self.drone, name), wire.Telemetry
+            )
+        pub.put(wire.Telemetry(t=t_ns, msg=name, f=dict(fields)))
+        self.published += 1

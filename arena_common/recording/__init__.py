@@ -1,0 +1,1 @@
+"""Flight logs: MCAP recording, repair, replay and export (:mod:`.mcap`) and plots (:mod:`.plots`)."""

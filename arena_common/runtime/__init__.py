@@ -1,0 +1,3 @@
+"""What every arena process needs: the service runtime (signals, presence, stats, logging;
+:mod:`.service`), the shared command-line options (:mod:`.options`), the process supervisor behind
+``arena up`` (:mod:`.supervisor`), and the launcher of a real PX4 SITL (:mod:`.px4_sitl`)."""

@@ -1,0 +1,78 @@
+"""Command-line options every arena command and service shares (``--config``, ``--mode``, ``--connect``…).
+
+Services build their own small typer entry points from these, so ``python -m services.X --help`` and
+``arena …`` speak the same options, the way zenoh's examples all take ``--mode/--connect/--listen``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated, Literal, overload
+
+import typer
+
+from arena_common.bus.session import BusOptions
+from arena_common.core import config as config_mod
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError
+
+DEFAULT_CONFIG = "deploy/sim.toml"
+
+ConfigOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--config",
+        "-c",
+        help="Arena config file (default: $ARENA_CONFIG, else deploy/sim.toml).",
+        show_default=False,
+    ),
+]
+ModeOpt = Annotated[str | None, typer.Option("--mode", "-m", help="Zenoh mode: peer, client or router.")]
+ConnectOpt = Annotated[
+    list[str] | None, typer.Option("--connect", "-e", help="Zenoh endpoint to connect to (repeatable).")
+]
+ListenOpt = Annotated[list[str] | None, typer.Option("--listen", "-l", help="Zenoh endpoint to listen on.")]
+ZConfigOpt = Annotated[
+    Path | None, typer.Option("--zconfig", help="A Zenoh JSON5 config file, applied first.")
+]
+HostOpt = Annotated[str | None, typer.Option("--host", help="This host's name (default: the hostname).")]
+LogOpt = Annotated[str, typer.Option("--log-level", help="DEBUG, INFO, WARNING or ERROR.")]
+
+
+def bus_options(
+    mode: str | None = None,
+    connect: list[str] | None = None,
+    listen: list[str] | None = None,
+    zconfig: Path | None = None,
+) -> BusOptions:
+    """The :class:`~arena_common.bus.session.BusOptions` of the shared command-line options."""
+    if mode is not None and mode not in config_mod.ZENOH_MODES:
+        raise typer.BadParameter(f"--mode must be one of {', '.join(config_mod.ZENOH_MODES)}, not {mode!r}")
+    return BusOptions(
+        mode=mode,
+        connect=tuple(connect or ()),
+        listen=tuple(listen or ()),
+        zconfig=str(zconfig) if zconfig else None,
+    )
+
+
+def config_path(path: Path | str | None) -> Path:
+    """The config file to use: the option, else ``$ARENA_CONFIG``, else ``deploy/sim.toml``."""
+    return Path(path or os.environ.get("ARENA_CONFIG") or DEFAULT_CONFIG)
+
+
+@overload
+def load_config(path: Path | str | None, required: Literal[True] = True) -> ArenaConfig: ...
+@overload
+def load_config(path: Path | str | None, required: bool) -> ArenaConfig | None: ...
+def load_config(path: Path | str | None, required: bool = True) -> ArenaConfig | None:
+    """Load the config or exit with its error on stderr (status 2).  ``required=False`` tolerates absence."""
+    p = config_path(path)
+    if not required and path is None and not p.exists():
+        return None
+    try:
+        return config_mod.load(p)
+    except ConfigError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None

@@ -1,0 +1,221 @@
+"""What every arena process needs once: shutdown on signals, presence, counters on a stats key, logging.
+
+A service module does::
+
+    def main(cfg: ArenaConfig, options: BusOptions, *, stop: threading.Event | None = None) -> None:
+        with running("transform", cfg, options, stop=stop) as svc:
+            sub = svc.bus.subscribe("arena/*/mocap")
+            while not svc.stopped:
+                item = sub.get(0.2)
+                ...
+                svc.stats.count("in")
+
+``running`` opens the bus, declares the presence token ``arena/sys/alive/<host>/<service>``, publishes
+:class:`~arena_common.core.wire.Stats` every second and closes everything on the way out (SIGINT/SIGTERM
+set the stop event when called from the main thread).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+from arena_common.bus.hosts import host_bus_options, host_name
+from arena_common.bus.session import Bus, BusOptions, open_bus
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+
+LOG_FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
+
+
+def setup_logging(level: str | int = "INFO") -> None:
+    """Configure the root logger once (services call it from their command-line entry)."""
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=level, format=LOG_FORMAT)
+    else:
+        logging.getLogger().setLevel(level)
+
+
+@dataclass
+class Stats:
+    """Counters of one service.  Thread-safe; :meth:`snapshot` computes rates and latency figures."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)
+    _lat: list[float] = field(default_factory=list)
+    _prev: dict[str, int] = field(default_factory=dict)
+    _prev_t: float = field(default_factory=time.monotonic)
+    _prev_cpu: float = field(default_factory=time.process_time)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def count(self, name: str, n: int = 1) -> None:
+        """Add ``n`` to counter ``name``."""
+        with self._lock:
+            self.counts[name] = self.counts.get(name, 0) + n
+
+    def set(self, name: str, value: int) -> None:
+        """Set counter ``name`` to a level (children alive, clients connected…)."""
+        with self._lock:
+            self.counts[name] = value
+
+    def reject(self, reason: str, n: int = 1) -> None:
+        """Count ``n`` rejected inputs (one by default) under ``reason``."""
+        if n <= 0:
+            return
+        with self._lock:
+            self.rejected[reason] = self.rejected.get(reason, 0) + n
+
+    def latency(self, seconds: float) -> None:
+        """Record one latency sample (kept until the next snapshot, at most 10,000)."""
+        with self._lock:
+            if len(self._lat) < 10_000:
+                self._lat.append(seconds)
+
+    def snapshot(self) -> tuple[dict[str, float], dict[str, float], float]:
+        """(rates per counter, latency p50/p99/max, cpu percent) since the previous snapshot."""
+        now, cpu = time.monotonic(), time.process_time()
+        with self._lock:
+            dt = max(now - self._prev_t, 1e-6)
+            rates = {k: (v - self._prev.get(k, 0)) / dt for k, v in self.counts.items()}
+            lat = sorted(self._lat)
+            self._lat = []
+            self._prev = dict(self.counts)
+            cpu_pct = 100.0 * (cpu - self._prev_cpu) / dt
+            self._prev_t, self._prev_cpu = now, cpu
+        figures: dict[str, float] = {}
+        if lat:
+            figures = {
+                "p50": lat[len(lat) // 2],
+                "p99": lat[min(len(lat) - 1, int(len(lat) * 0.99))],
+                "max": lat[-1],
+                "n": float(len(lat)),
+            }
+        return rates, figures, cpu_pct
+
+
+def _rss_bytes() -> int:
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+class Service:
+    """A running service: its bus, stop event, stats, logger and presence."""
+
+    def __init__(
+        self, name: str, cfg: ArenaConfig | None, bus: Bus, host: str, vehicle: str, stop: threading.Event
+    ) -> None:
+        self.name = name
+        self.id = f"{name}.{vehicle}" if vehicle else name
+        self.cfg = cfg
+        self.bus = bus
+        self.host = host
+        self.vehicle = vehicle
+        self.stop = stop
+        self.stats = Stats()
+        self.log = logging.getLogger(f"arena.{self.id}")
+        self.started = time.monotonic()
+        self._last_warn: dict[str, float] = {}
+        self._stats_pub = bus.stream_publisher(keys.stats(host, self.id), wire.Stats)
+
+    @property
+    def stopped(self) -> bool:
+        """True once a stop was asked for."""
+        return self.stop.is_set()
+
+    def reject(self, reason: str, detail: str = "", interval: float = 5.0) -> None:
+        """Count a rejected input and log it, once per reason per ``interval`` seconds."""
+        self.stats.reject(reason)
+        now = time.monotonic()
+        if now - self._last_warn.get(reason, -1e9) >= interval:
+            self._last_warn[reason] = now
+            n = self.stats.rejected.get(reason, 0)
+            self.log.warning("rejected (%s, %d so far): %s", reason, n, detail or reason)
+
+    def publish_stats(self) -> wire.Stats:
+        """Publish one :class:`~arena_common.core.wire.Stats` snapshot now."""
+        rates, lat, cpu = self.stats.snapshot()
+        with self.stats._lock:
+            counts, rejected = dict(self.stats.counts), dict(self.stats.rejected)
+        msg = wire.Stats(
+            t=wire.now_ns(),
+            service=self.id,
+            host=self.host,
+            pid=os.getpid(),
+            up=time.monotonic() - self.started,
+            counts=counts,
+            rejected=rejected,
+            rates=rates,
+            lat=lat,
+            cpu=cpu,
+            rss=_rss_bytes(),
+            vehicle=self.vehicle,
+        )
+        self._stats_pub.put(msg)
+        return msg
+
+    def _stats_loop(self, period: float) -> None:
+        while not self.stop.wait(period):
+            try:
+                self.publish_stats()
+            except Exception as exc:  # the bus may be closing; never take the service down
+                self.log.debug("stats not published: %s", exc)
+
+    def sleep(self, seconds: float) -> bool:
+        """Wait up to ``seconds``; returns True if a stop was asked for meanwhile."""
+        return self.stop.wait(seconds)
+
+
+@contextmanager
+def running(
+    name: str,
+    cfg: ArenaConfig | None,
+    options: BusOptions | None = None,
+    *,
+    vehicle: str = "",
+    host: str | None = None,
+    stop: threading.Event | None = None,
+    stats_period: float = 1.0,
+    bus: Bus | None = None,
+) -> Iterator[Service]:
+    """Run a service: open the bus, declare presence, publish stats, stop cleanly on SIGINT/SIGTERM."""
+    stop = stop or threading.Event()
+    own_bus = bus is None
+    host = host_name(host)
+    the_bus = (
+        open_bus(cfg.zenoh if cfg else None, host_bus_options(cfg, host, options)) if bus is None else bus
+    )
+    svc = Service(name, cfg, the_bus, host, vehicle, stop)
+    previous: dict[signal.Signals, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    token = the_bus.token(keys.alive(svc.host, svc.id))
+    stats_thread = threading.Thread(
+        target=svc._stats_loop, args=(stats_period,), name=f"{svc.id}:stats", daemon=True
+    )
+    stats_thread.start()
+    svc.log.info("started (host %s, pid %d)", svc.host, os.getpid())
+    try:
+        yield svc
+    finally:
+        stop.set()
+        stats_thread.join(timeout=2.0)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        try:
+            token.undeclare()
+        except Exception:
+            pass
+        if own_bus:
+            the_bus.close()
+        svc.log.info("stopped")

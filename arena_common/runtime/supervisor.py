@@ -1,0 +1,601 @@
+"""Run a host's share of the arena: one OS process per service, restarted when it dies, stopped together.
+
+:func:`plan` turns the config into the process table of one host (``hosts.<h>.services`` and, for each
+of ``hosts.<h>.vehicles``, its ``vehicle_services``, preceded for an ``autopilot = "px4-sitl"`` vehicle by
+its PX4 SITL autopilot and truth bridge); :class:`Supervisor` runs such a table::
+
+    specs = plan(cfg, "ground")
+    sup = Supervisor(specs)
+    sup.run(stop)          # until ``stop`` is set; then SIGTERM to each, SIGKILL after a grace period
+
+The router starts first and the others only once its port accepts connections.  Every child's output is
+prefixed with its name (``[gateway.d1] …``, coloured on a terminal).  A child that exits is restarted
+after an exponential back-off (0.5 s doubling to 10 s, back to 0.5 s once a child has run for a stable
+minute).  Children never outlive the supervisor: each one asks the kernel for SIGKILL when its parent
+dies (``PR_SET_PDEATHSIG``, Linux), so even a ``kill -9`` of the supervisor stops them (an orderly stop
+sends SIGTERM first); each child also runs in its own process group, which is what the supervisor
+signals, so a child's own children go too, and a Ctrl-C on the terminal reaches the supervisor alone,
+which then stops the children in order.
+
+``PR_SET_PDEATHSIG`` fires when the *thread* that forked the child ends, so spawn from a thread that
+lives as long as the children (``arena up`` spawns from its main thread).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import IO, Any, Protocol
+
+from arena_common.bus.session import BusOptions
+from arena_common.core.config import ArenaConfig, HostSpec
+from arena_common.core.errors import ArenaError
+
+# Config service name → (process name, module) pairs; "sim" is the simulated world: the simulated
+# autopilots of the ``autopilot = "sim"`` vehicles (none: not started) and the Motive emulator.
+SERVICE_PROCESSES: Mapping[str, tuple[tuple[str, str], ...]] = {
+    "mocap": (("mocap", "services.mocap_ingest"),),
+    "transform": (("transform", "services.frame_transform"),),
+    "recorder": (("recorder", "services.recorder"),),
+    "sim": (("sim_vehicle", "services.sim_vehicle"), ("sim_mocap", "services.sim_mocap")),
+}
+VEHICLE_PROCESSES: Mapping[str, str] = {
+    "downsampler": "services.downsampler",
+    "gateway": "services.mavlink_gateway",
+}
+# An ``autopilot = "px4-sitl"`` vehicle's autopilot and its ground-truth bridge: started on the host
+# that runs its gateway (PX4 SITL talks on loopback only), before the vehicle's own services.
+PX4_SITL_PROCESSES: tuple[tuple[str, str], ...] = (
+    ("px4_sitl", "services.px4_sitl"),
+    ("px4_truth", "services.px4_truth"),
+)
+ROUTER_MODULE = "arena_common.cli"
+SUPERVISOR_SERVICE = "supervisor"
+_PR_SET_PDEATHSIG = 1
+_COLOURS = ("36", "32", "33", "35", "34", "91", "92", "93", "95", "96")
+
+
+class TextSink(Protocol):
+    """Where the prefixed lines go: ``sys.stdout`` or anything with ``write`` and ``flush``."""
+
+    def write(self, text: str, /) -> int: ...
+
+    def flush(self) -> None: ...
+
+
+class SupervisorError(ArenaError):
+    """A process table that cannot be run (no such host, nothing to start, a child that cannot start)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ProcessSpec:
+    """One supervised process: its name (the log prefix), command line, and what "ready" means."""
+
+    name: str
+    argv: tuple[str, ...]
+    ready_port: tuple[str, int] | None = None  # wait until this TCP address accepts before the next ones
+    env: Mapping[str, str] = field(default_factory=dict)
+
+    def command_line(self) -> str:
+        """The command line, quoted as a shell would need it."""
+        return shlex.join(self.argv)
+
+
+@dataclass(frozen=True, slots=True)
+class Backoff:
+    """Restart delays: ``initial`` doubling up to ``maximum``; reset once a child ran ``stable_s``."""
+
+    initial: float = 0.5
+    maximum: float = 10.0
+    stable_s: float = 60.0
+
+    def delay(self, failures: int) -> float:
+        """Delay before restart number ``failures`` (1-based) of an unstable child."""
+        return min(self.maximum, self.initial * 2.0 ** max(0, failures - 1))
+
+
+@dataclass(frozen=True, slots=True)
+class ChildStatus:
+    """A snapshot of one supervised process."""
+
+    name: str
+    pid: int | None
+    alive: bool
+    restarts: int
+    uptime: float
+    last_exit: int | None
+
+
+# -- the process table ----------------------------------------------------------------------------------
+
+
+def _bus_args(options: BusOptions | None, router: bool = False) -> list[str]:
+    if options is None:
+        return []
+    args: list[str] = []
+    if not router:
+        if options.mode:
+            args += ["--mode", options.mode]
+        for e in options.connect:
+            args += ["--connect", e]
+    for e in options.listen:
+        args += ["--listen", e]
+    if options.zconfig:
+        args += ["--zconfig", options.zconfig]
+    return args
+
+
+def endpoint_address(endpoint: str) -> tuple[str, int] | None:
+    """The TCP address to probe for a Zenoh endpoint (``tcp/0.0.0.0:7447`` → ``('127.0.0.1', 7447)``).
+
+    ``None`` for endpoints that cannot be probed with a TCP connect (UDP, Unix sockets, port 0).
+    """
+    proto, sep, rest = endpoint.partition("/")
+    if not sep or proto not in ("tcp", "tls", "ws"):
+        return None
+    rest = rest.split("#", 1)[0].split("?", 1)[0]
+    host, sep, port_s = rest.rpartition(":")
+    if not sep or not port_s.isdigit() or int(port_s) == 0:
+        return None
+    host = host.strip("[]")
+    if host in ("0.0.0.0", ""):
+        host = "127.0.0.1"
+    elif host == "::":
+        host = "::1"
+    return host, int(port_s)
+
+
+def host_options(cfg: ArenaConfig, host: HostSpec, options: BusOptions | None = None) -> BusOptions | None:
+    """The bus options of ``host``'s services: peers listen on the host's address when it has one.
+
+    Zenoh 1.x routers do not relay between two peers that cannot reach each other, and a peer listening
+    on loopback (the default) cannot be reached from another computer: so a host with an ``address``
+    has its peers listen on ``tcp/<address>:0``, and peers of different computers connect directly
+    (learning each other's endpoints by gossip through the router).  An explicit ``--listen`` or
+    ``zenoh.listen`` wins; clients and routers are left alone.
+    """
+    mode = (options.mode if options else None) or cfg.zenoh.mode
+    if not host.address or mode != "peer" or cfg.zenoh.listen or (options and options.listen):
+        return options
+    address = f"[{host.address}]" if ":" in host.address else host.address
+    return replace(options or BusOptions(), listen=(f"tcp/{address}:0",))
+
+
+def plan(
+    cfg: ArenaConfig,
+    host: str | None = None,
+    *,
+    options: BusOptions | None = None,
+    python: str = sys.executable,
+    log_level: str | None = None,
+) -> list[ProcessSpec]:
+    """The processes the config assigns to ``host`` (default: this machine's hostname), router first.
+
+    Raises :class:`~arena_common.core.errors.ConfigError` naming the known hosts when ``host`` is not in the
+    config.  ``options`` (the command line's ``--mode/--connect/--listen/--zconfig``) are passed on to
+    every child.
+    """
+    h: HostSpec = cfg.host(host)
+    config_path = str(Path(cfg.path).resolve())
+    common = ["-c", config_path, "--host", h.name]
+    level = ["--log-level", log_level] if log_level else []
+    specs: list[ProcessSpec] = []
+    if "router" in h.services:
+        ready = next((a for a in map(endpoint_address, cfg.zenoh.router_listen) if a is not None), None)
+        argv = (python, "-m", ROUTER_MODULE, "router", *common, *_bus_args(options, router=True))
+        specs.append(ProcessSpec("router", argv, ready_port=ready))
+    options = host_options(cfg, h, options)
+    for service in h.services:
+        for name, module in _service_processes(cfg, service):
+            specs.append(ProcessSpec(name, (python, "-m", module, *common, *level, *_bus_args(options))))
+    for vehicle in h.vehicles:
+        if cfg.vehicle(vehicle).px4_sitl and "gateway" in h.vehicle_services:
+            for name, module in PX4_SITL_PROCESSES:
+                argv = (python, "-m", module, *common, "--vehicle", vehicle, *level)
+                specs.append(ProcessSpec(f"{name}.{vehicle}", (*argv, *_bus_args(options))))
+        for service in h.vehicle_services:
+            argv = (python, "-m", VEHICLE_PROCESSES[service], *common, "--vehicle", vehicle, *level)
+            specs.append(ProcessSpec(f"{service}.{vehicle}", (*argv, *_bus_args(options))))
+    return specs
+
+
+def sim_world_plan(
+    cfg: ArenaConfig,
+    host: str | None = None,
+    *,
+    options: BusOptions | None = None,
+    python: str = sys.executable,
+    log_level: str | None = None,
+) -> list[ProcessSpec]:
+    """The simulated world alone (simulated vehicles and the Motive emulator), whatever the host runs.
+
+    PX4 SITL vehicles are not part of it: their autopilots start with their gateways (:func:`plan`).
+    """
+    common = ["-c", str(Path(cfg.path).resolve())]
+    if host:
+        common += ["--host", host]
+    level = ["--log-level", log_level] if log_level else []
+    return [
+        ProcessSpec(name, (python, "-m", module, *common, *level, *_bus_args(options)))
+        for name, module in _service_processes(cfg, "sim")
+    ]
+
+
+def _service_processes(cfg: ArenaConfig, service: str) -> tuple[tuple[str, str], ...]:
+    """The processes of a host service; "sim" without simulated vehicles is the Motive emulator alone."""
+    processes = SERVICE_PROCESSES.get(service, ())
+    if service == "sim" and not any(v.simulated for v in cfg.vehicles.values()):
+        processes = tuple(p for p in processes if p[0] != "sim_vehicle")
+    return processes
+
+
+# -- child process plumbing ------------------------------------------------------------------------------
+
+
+def _load_prctl() -> Callable[..., int] | None:
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        prctl: Callable[..., int] = libc.prctl
+    except (OSError, AttributeError):
+        return None
+    return prctl
+
+
+# Resolved once, before any fork: the child side must not load libraries.
+_prctl = _load_prctl()
+
+
+def child_setup(parent_pid: int, death_signal: int) -> Callable[[], None]:
+    """A ``preexec_fn`` that has the child sent ``death_signal`` when ``parent_pid`` (this thread) dies."""
+
+    def setup() -> None:
+        # Runs in the child between fork and exec: ask for ``death_signal`` when the parent dies, and
+        # handle the race where it died before this line ran.
+        if _prctl is not None:
+            _prctl(_PR_SET_PDEATHSIG, death_signal, 0, 0, 0)
+        if os.getppid() != parent_pid:
+            os.kill(os.getpid(), death_signal)
+
+    return setup
+
+
+def _signal_name(code: int) -> str:
+    try:
+        return signal.Signals(-code).name
+    except ValueError:
+        return f"signal {-code}"
+
+
+def describe_exit(code: int) -> str:
+    """``exited with status 1`` or ``killed by SIGKILL``."""
+    return f"killed by {_signal_name(code)}" if code < 0 else f"exited with status {code}"
+
+
+class _Output:
+    """One writer for every child's lines, prefixed (and coloured on a terminal)."""
+
+    def __init__(self, out: TextSink, color: bool) -> None:
+        self.out = out
+        self.color = color
+        self.width = 0
+        self._lock = threading.Lock()
+        self._colours: dict[str, str] = {}
+
+    def prefix(self, name: str) -> str:
+        tag = f"[{name}]"
+        if not self.color:
+            return tag + " "
+        colour = self._colours.setdefault(name, _COLOURS[len(self._colours) % len(_COLOURS)])
+        return f"\x1b[{colour}m{tag}\x1b[0m "
+
+    def line(self, name: str, text: str) -> None:
+        text = text.rstrip("\r\n")
+        with self._lock:
+            try:
+                self.out.write(self.prefix(name) + text + "\n")
+                self.out.flush()
+            except (OSError, ValueError):  # the terminal went away: keep supervising
+                pass
+
+
+class _Child:
+    def __init__(self, spec: ProcessSpec) -> None:
+        self.spec = spec
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.reader: threading.Thread | None = None
+        self.started = 0.0
+        self.restarts = 0
+        self.failures = 0
+        self.next_start: float | None = None
+        self.last_exit: int | None = None
+
+    @property
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+
+class Supervisor:
+    """Starts a process table, restarts what dies, stops everything on :meth:`shutdown`.
+
+    ``out`` receives every child's output, prefixed, and the supervisor's own lines (prefix
+    ``[arena]``); ``color`` defaults to "``out`` is a terminal and ``NO_COLOR`` is unset".  ``grace``
+    is how long stopping children get after SIGTERM before SIGKILL; ``ready_timeout`` bounds the wait
+    for the router's port.  ``on_event(kind, name, detail)`` is called on ``started``/``exited``/
+    ``restarting`` (from the supervising thread).
+    """
+
+    def __init__(
+        self,
+        specs: Sequence[ProcessSpec],
+        *,
+        out: TextSink | None = None,
+        color: bool | None = None,
+        backoff: Backoff | None = None,
+        grace: float = 5.0,
+        ready_timeout: float = 15.0,
+        death_signal: int = signal.SIGKILL,
+        env: Mapping[str, str] | None = None,
+        on_event: Callable[[str, str, str], None] | None = None,
+    ) -> None:
+        if not specs:
+            raise SupervisorError("nothing to start: the process table is empty")
+        names = [s.name for s in specs]
+        if len(set(names)) != len(names):
+            raise SupervisorError(f"duplicate process names in {names}")
+        out = out or sys.stdout
+        if color is None:
+            color = bool(getattr(out, "isatty", lambda: False)()) and "NO_COLOR" not in os.environ
+        self.output = _Output(out, color)
+        self.backoff = backoff or Backoff()
+        self.grace = grace
+        self.ready_timeout = ready_timeout
+        self.death_signal = int(death_signal)
+        self.env = dict(os.environ if env is None else env)
+        self.env.setdefault("PYTHONUNBUFFERED", "1")
+        self.on_event = on_event
+        self.children = [_Child(s) for s in specs]
+        self.stopping = False
+        self._started = False
+
+    # -- reporting ------------------------------------------------------------------------------------
+    def say(self, text: str) -> None:
+        """Print one supervisor line."""
+        self.output.line("arena", text)
+
+    def _event(self, kind: str, name: str, detail: str = "") -> None:
+        if self.on_event is not None:
+            try:
+                self.on_event(kind, name, detail)
+            except Exception as exc:  # an observer's bug must not stop supervision
+                self.say(f"event callback failed: {exc}")
+
+    def status(self) -> list[ChildStatus]:
+        """One :class:`ChildStatus` per process, in start order."""
+        now = time.monotonic()
+        return [
+            ChildStatus(
+                c.spec.name,
+                c.proc.pid if c.proc is not None else None,
+                c.alive,
+                c.restarts,
+                now - c.started if c.alive else 0.0,
+                c.last_exit,
+            )
+            for c in self.children
+        ]
+
+    @property
+    def alive_count(self) -> int:
+        """How many children run right now."""
+        return sum(1 for c in self.children if c.alive)
+
+    @property
+    def restart_count(self) -> int:
+        """Restarts of all children since start."""
+        return sum(c.restarts for c in self.children)
+
+    def pids(self) -> dict[str, int]:
+        """Name → pid of every running child."""
+        return {c.spec.name: c.proc.pid for c in self.children if c.alive and c.proc is not None}
+
+    # -- starting -------------------------------------------------------------------------------------
+    def _spawn(self, child: _Child) -> bool:
+        spec = child.spec
+        try:
+            proc = subprocess.Popen(
+                spec.argv,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                env={**self.env, **spec.env},
+                start_new_session=True,
+                preexec_fn=child_setup(os.getpid(), self.death_signal),
+                close_fds=True,
+            )
+        except OSError as exc:
+            self.say(f"{spec.name}: cannot start {spec.argv[0]}: {exc.strerror or exc}")
+            child.last_exit = 127
+            self._schedule_restart(child, time.monotonic())
+            return False
+        child.proc = proc
+        child.started = time.monotonic()
+        child.next_start = None
+        reader = threading.Thread(target=self._pump, args=(spec.name, proc.stdout), daemon=True)
+        reader.name = f"log:{spec.name}"
+        reader.start()
+        child.reader = reader
+        self._event("started", spec.name, str(proc.pid))
+        return True
+
+    def _pump(self, name: str, stream: IO[bytes] | None) -> None:
+        if stream is None:
+            return
+        with stream:
+            for raw in iter(stream.readline, b""):
+                self.output.line(name, raw.decode("utf-8", errors="replace"))
+
+    def _wait_ready(self, child: _Child, stop: threading.Event | None) -> None:
+        address = child.spec.ready_port
+        if address is None:
+            return
+        deadline = time.monotonic() + self.ready_timeout
+        while time.monotonic() < deadline:
+            if stop is not None and stop.is_set():
+                return
+            if not child.alive:
+                return  # it died: supervision restarts it; the others start anyway
+            try:
+                with socket.create_connection(address, timeout=0.5):
+                    return
+            except OSError:
+                time.sleep(0.05)
+        self.say(
+            f"{child.spec.name} is not accepting on {address[0]}:{address[1]} after "
+            f"{self.ready_timeout:.0f} s; starting the others anyway"
+        )
+
+    def start(self, stop: threading.Event | None = None) -> None:
+        """Start every child in order, waiting for each ``ready_port`` before the next ones."""
+        if self._started:
+            return
+        self._started = True
+        for child in self.children:
+            if stop is not None and stop.is_set():
+                return
+            if self._spawn(child):
+                assert child.proc is not None
+                self.say(f"started {child.spec.name} (pid {child.proc.pid})")
+                self._wait_ready(child, stop)
+
+    # -- supervising ------------------------------------------------------------------------------------
+    def _schedule_restart(self, child: _Child, now: float) -> None:
+        ran = now - child.started if child.started else 0.0
+        child.failures = 1 if ran >= self.backoff.stable_s else child.failures + 1
+        delay = self.backoff.delay(child.failures)
+        child.next_start = now + delay
+        self._event("restarting", child.spec.name, f"{delay:.1f}")
+
+    def poll(self) -> None:
+        """One supervision step: notice exits, schedule restarts, start what is due."""
+        if self.stopping:
+            return
+        now = time.monotonic()
+        for child in self.children:
+            proc = child.proc
+            if proc is not None and child.next_start is None:
+                code = proc.poll()
+                if code is None:
+                    continue
+                child.last_exit = code
+                ran = now - child.started
+                self._schedule_restart(child, now)
+                assert child.next_start is not None
+                self.say(
+                    f"{child.spec.name} (pid {proc.pid}) {describe_exit(code)} after {ran:.1f} s; "
+                    f"restarting in {child.next_start - now:.1f} s"
+                )
+                self._event("exited", child.spec.name, describe_exit(code))
+            elif child.next_start is not None and now >= child.next_start:
+                child.restarts += 1
+                if self._spawn(child):
+                    assert child.proc is not None
+                    self.say(f"restarted {child.spec.name} (pid {child.proc.pid}, restart {child.restarts})")
+
+    def run(self, stop: threading.Event, interval: float = 0.1) -> None:
+        """Start (if not yet), supervise until ``stop`` is set, then :meth:`shutdown`."""
+        try:
+            self.start(stop)
+            while not stop.wait(interval):
+                self.poll()
+        finally:
+            self.shutdown()
+
+    # -- stopping -------------------------------------------------------------------------------------
+    def _signal(self, child: _Child, sig: int) -> None:
+        if child.proc is None or child.proc.poll() is not None:
+            return
+        try:
+            os.killpg(child.proc.pid, sig)
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            child.proc.send_signal(sig)
+
+    def _stop_group(self, group: Iterable[_Child]) -> None:
+        group = [c for c in group if c.alive]
+        for child in group:
+            self._signal(child, signal.SIGTERM)
+        deadline = time.monotonic() + self.grace
+        for child in group:
+            assert child.proc is not None
+            try:
+                child.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.say(f"{child.spec.name} did not stop within {self.grace:.1f} s: SIGKILL")
+                self._signal(child, signal.SIGKILL)
+                try:
+                    child.proc.wait(timeout=5.0)
+                except subprocess.TimeoutExpired:
+                    self.say(f"{child.spec.name} (pid {child.proc.pid}) survived SIGKILL")
+
+    def shutdown(self) -> None:
+        """Stop every child: SIGTERM, then SIGKILL after ``grace``; the router last.  Idempotent."""
+        if self.stopping:
+            return
+        self.stopping = True
+        routers = [c for c in self.children if c.spec.ready_port is not None]
+        others = [c for c in self.children if c.spec.ready_port is None]
+        if any(c.alive for c in self.children):
+            self.say("stopping " + ", ".join(c.spec.name for c in self.children if c.alive))
+        self._stop_group(reversed(others))
+        self._stop_group(routers)
+        for child in self.children:
+            if child.reader is not None:
+                child.reader.join(timeout=2.0)
+        self.say("all stopped")
+
+
+def supervise(
+    specs: Sequence[ProcessSpec],
+    stop: threading.Event | None = None,
+    *,
+    tick: Callable[[Supervisor], None] | None = None,
+    **kwargs: Any,
+) -> Supervisor:
+    """Run ``specs`` in the foreground until SIGINT/SIGTERM/SIGHUP (or ``stop``); returns when all stopped.
+
+    Signal handlers are installed only when called from the main thread.  ``tick`` is called about
+    every 0.1 s with the supervisor (stats, status displays).
+    """
+    stop = stop or threading.Event()
+    sup = Supervisor(specs, **kwargs)
+    previous: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    try:
+        sup.start(stop)
+        while not stop.wait(0.1):
+            sup.poll()
+            if tick is not None:
+                tick(sup)
+    finally:
+        try:
+            sup.shutdown()
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+    return sup

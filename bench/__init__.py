@@ -1,0 +1,1 @@
+"""Benchmarks of the arena (``make bench``): not part of the installed runtime."""

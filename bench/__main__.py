@@ -1,0 +1,121 @@
+"""``make bench`` (``python -m bench``): latency, CPU and memory of the arena against its floors and MAVProxy."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+
+def _numbers(text: str, what: str, kind: type = float) -> tuple[Any, ...]:
+    try:
+        values = tuple(kind(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise typer.BadParameter(f"{what}: expected comma-separated numbers, got {text!r}") from None
+    if not values:
+        raise typer.BadParameter(f"{what}: give at least one value")
+    return values
+
+
+def bench(
+    part: Annotated[
+        list[str] | None,
+        typer.Option("--part", "-p", help="pipeline, floor, peer or micro (repeatable; default: all)."),
+    ] = None,
+    vehicles: Annotated[
+        str | None, typer.Option("--vehicles", "-n", help="Vehicle counts, e.g. 1,10,20.")
+    ] = None,
+    rates: Annotated[
+        str | None, typer.Option("--rates", "-r", help="Mocap rates in Hz, e.g. 180,360.")
+    ] = None,
+    floor: Annotated[
+        list[str] | None,
+        typer.Option("--floor", help="Floor transports: zenoh, udp (repeatable; default both)."),
+    ] = None,
+    duration: Annotated[
+        float | None, typer.Option("--duration", "-d", help="Seconds measured per load point.")
+    ] = None,
+    warmup: Annotated[
+        float | None, typer.Option("--warmup", help="Seconds of flow before measuring.")
+    ] = None,
+    quick: Annotated[
+        bool,
+        typer.Option("--quick", help="Short runs of 1 and 10 vehicles at 180 Hz (a check, not figures)."),
+    ] = False,
+    profile: Annotated[
+        bool, typer.Option("--profile", help="py-spy the services during each pipeline measurement.")
+    ] = False,
+    realistic_vision: Annotated[
+        float,
+        typer.Option(
+            "--realistic-vision",
+            help="Vision rate (Hz) of one more point at the largest load, as deployed (0: skip).",
+        ),
+    ] = 50.0,
+    hops: Annotated[
+        bool,
+        typer.Option("--hops", help="Also time each stage of the first vehicle (subscribes to its keys)."),
+    ] = False,
+    decimate: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--decimate",
+            help="Pipeline configurations: downsampler (chain arena), transform (arena-td); default both.",
+        ),
+    ] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")] = Path(
+        "bench-results"
+    ),
+    docs: Annotated[
+        bool | None,
+        typer.Option(
+            "--docs/--no-docs", help="Write the tables into docs/performance.md (default: full runs only)."
+        ),
+    ] = None,
+    docs_file: Annotated[Path, typer.Option("--docs-file", help="The document to update.")] = Path(
+        "docs/performance.md"
+    ),
+    rerender: Annotated[
+        Path | None, typer.Option("--from", help="Re-render the tables (and docs) from a stored JSON result.")
+    ] = None,
+) -> None:
+    """Measure the arena: end-to-end latency, loss, CPU and memory at 1–20 vehicles and 180/360 Hz, beside
+    a bare Zenoh and a UDP chain of the same processes, the gateway beside MAVProxy, and per-stage costs."""
+    from bench import run as bench_mod
+
+    if rerender is not None:
+        bench_mod.rerender(rerender, docs_file)
+        return
+    changes: dict[str, Any] = {
+        "out_dir": out,
+        "profile": profile,
+        "hops": hops,
+        "realistic_vision": realistic_vision if realistic_vision > 0 else None,
+    }
+    if part:
+        changes["parts"] = tuple(part)
+    if vehicles is not None:
+        changes["vehicles"] = _numbers(vehicles, "--vehicles", int)
+    if rates is not None:
+        changes["rates"] = _numbers(rates, "--rates")
+    if floor:
+        changes["floors"] = tuple(floor)
+    if decimate:
+        changes["decimate"] = tuple(decimate)
+    if duration is not None:
+        changes["duration"] = duration
+    if warmup is not None:
+        changes["warmup"] = warmup
+    write_docs = (not quick) if docs is None else docs
+    changes["docs"] = docs_file if write_docs else None
+    options = bench_mod.BenchOptions.quick_options(**changes) if quick else bench_mod.BenchOptions(**changes)
+    try:
+        bench_mod.run(options)
+    except bench_mod.BenchError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+if __name__ == "__main__":
+    typer.run(bench)

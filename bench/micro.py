@@ -1,0 +1,311 @@
+"""Per-stage micro-benchmarks of ``make bench``: what each step of the pipeline costs in this process.
+
+Each figure is the best of three timed loops (microseconds per call unless said otherwise), so a busy
+machine inflates it less than a mean would.  ``scale`` shortens every loop (tests use a tiny one).
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+from arena_common.core import wire
+from arena_common.mavlink import px4
+from arena_common.mocap import natnet
+
+__all__ = ["per_call_us", "run_micro", "wire_examples"]
+
+
+def per_call_us(fn: Callable[[], Any], iterations: int, repeats: int = 3) -> float:
+    """Best of ``repeats`` loops of ``iterations`` calls of ``fn``, in µs per call."""
+    iterations = max(1, iterations)
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter_ns()
+        for _ in range(iterations):
+            fn()
+        best = min(best, (time.perf_counter_ns() - start) / iterations / 1000.0)
+    return best
+
+
+def wire_examples() -> dict[str, wire.Payload]:
+    """One realistic value of every payload type."""
+    now = time.time_ns()
+    return {
+        "MocapPose": wire.MocapPose(
+            t=now,
+            fn=123456,
+            id=1,
+            p=(1.2345, 0.9876, -0.5432),
+            q=(0.92387953, 0.0, 0.38268343, 0.0),
+            ok=True,
+            name="d1",
+            err=0.0002,
+            lat=5_380_000,
+            mts=1234.5,
+            tsrc="echo",
+            tp=now,
+        ),
+        "Pose": wire.Pose(
+            t=now,
+            p=(1.2345, -0.5432, -0.9876),
+            q=(0.92387953, 0.0, 0.0, 0.38268343),
+            ok=True,
+            fn=123456,
+            v=(0.12, -0.03, 0.01),
+            w=(0.0, 0.01, 0.2),
+            vok=True,
+            rc=0,
+            tp=now,
+        ),
+        "State": wire.State(
+            t=now,
+            sysid=1,
+            link=True,
+            armed=True,
+            mode="OFFBOARD",
+            landed="in_air",
+            p=(1.0, -0.5, -1.0),
+            v=(0.1, 0.0, 0.0),
+            q=(1.0, 0.0, 0.0, 0.0),
+            mp=(1.0, -0.5, -1.0),
+            bat=0.8,
+            volt=15.9,
+            rtt=0.002,
+            hb_age=0.3,
+            vis_rate=50.0,
+            vis_age=0.01,
+            vis_fused=True,
+            ofb=True,
+            setup_ok=True,
+            fs=(),
+            tp=now,
+        ),
+        "Telemetry": wire.Telemetry(
+            t=now,
+            msg="ATTITUDE",
+            f={
+                "time_boot_ms": 123456,
+                "roll": 0.01,
+                "pitch": -0.02,
+                "yaw": 1.57,
+                "rollspeed": 0.0,
+                "pitchspeed": 0.0,
+                "yawspeed": 0.01,
+            },
+        ),
+        "Event": wire.Event(
+            t=now, kind="mode", text="d1: POSITION → OFFBOARD", sev=6, data={"mode": "OFFBOARD"}
+        ),
+        "Command": wire.Command(
+            op="goto", args={"p": [1.0, 0.5, -1.0], "yaw": 0.0}, src="lab/user", timeout=5.0, t=now
+        ),
+        "CommandResult": wire.CommandResult(ok=True, result="ACCEPTED", reason="", value={}, t=now),
+        "Setpoint": wire.Setpoint(t=now, lease=0.5, p=(1.0, 0.5, -1.0), v=None, yaw=0.0, src="lab/user"),
+        "Estop": wire.Estop(t=now, kill=False, reason="test", src="lab/user"),
+        "Stats": wire.Stats(
+            t=now,
+            service="gateway.d1",
+            host="bench",
+            pid=1234,
+            up=12.5,
+            counts={"in": 1000, "out": 990},
+            rejected={"stale": 3},
+            rates={"in": 50.0, "out": 49.5},
+            lat={"p50": 0.0003, "p99": 0.001},
+            cpu=3.5,
+            rss=60_000_000,
+            vehicle="d1",
+        ),
+    }
+
+
+_KEYS = {
+    "MocapPose": "arena/d1/mocap",
+    "Pose": "arena/d1/pose",
+    "State": "arena/d1/state",
+    "Telemetry": "arena/d1/telemetry/ATTITUDE",
+    "Event": "arena/d1/events",
+    "Command": "arena/d1/cmd",
+    "CommandResult": "arena/d1/cmd",
+    "Setpoint": "arena/d1/setpoint",
+    "Estop": "arena/estop",
+    "Stats": "arena/sys/stats/bench/gateway.d1",
+}
+
+
+def _natnet(scale: float) -> dict[str, float]:
+    return {f"{n} bodies": natnet.bench_decode(n, max(10, int(2000 * scale))) for n in (1, 10, 50)}
+
+
+def _transform(scale: float) -> dict[str, float]:
+    import numpy as np
+
+    from arena_common.geometry.frames import Calibration, FrameTransform, UpAxis
+
+    tf = FrameTransform(UpAxis.Y_UP, Calibration.from_degrees(-25.0, (0.4, -0.3, 0.05)))
+    p, q = (1.2, 0.9, -0.5), (0.92387953, 0.0, 0.38268343, 0.0)
+    out = {"pose (1 body)": per_call_us(lambda: tf.pose(p, q), int(50_000 * scale))}
+    for n in (10, 50):
+        ps = np.tile(np.array(p), (n, 1))
+        qs = np.tile(np.array(q), (n, 1))
+        out[f"poses, batch of {n} (per pose)"] = per_call_us(partial(tf.poses, ps, qs), int(5000 * scale)) / n
+    return out
+
+
+# µs per (encode, decode) of the wire before it moved to msgspec Structs (the hand-written dataclass codec
+# of commit ce0ffc3), measured by this same loop on the 2-core development machine just before the change;
+# ``make bench`` lists them under today's figures for comparison (same bytes).
+WIRE_BEFORE_MSGSPEC_US: dict[str, tuple[float, float]] = {
+    "MocapPose": (2.24, 6.87),
+    "Pose": (2.06, 6.02),
+    "State": (3.37, 10.58),
+    "Telemetry": (1.21, 3.86),
+    "Event": (1.19, 3.89),
+    "Command": (1.34, 3.96),
+    "CommandResult": (1.13, 3.59),
+    "Setpoint": (1.33, 3.45),
+    "Estop": (1.03, 2.46),
+    "Stats": (2.25, 9.02),
+}
+
+
+def _wire(scale: float) -> dict[str, dict[str, float]]:
+    out: dict[str, dict[str, float]] = {}
+    n = int(20_000 * scale)
+    for name, value in wire_examples().items():
+        raw = value.encode()
+        cls = type(value)
+        key = _KEYS[name]
+        out[name] = {
+            "bytes": float(len(raw)),
+            "encode": per_call_us(value.encode, n),
+            "decode": per_call_us(partial(cls.decode, raw, key), n),
+        }
+        if name in WIRE_BEFORE_MSGSPEC_US:
+            encode, decode = WIRE_BEFORE_MSGSPEC_US[name]
+            out[f"{name} before msgspec (recorded)"] = {
+                "bytes": float(len(raw)),
+                "encode": encode,
+                "decode": decode,
+            }
+    return out
+
+
+def _mavlink(scale: float) -> dict[str, float]:
+    from arena_common.mavlink.link import mavlink2
+
+    mav = mavlink2.MAVLink(None, srcSystem=245, srcComponent=191)
+    pose = wire_examples()["Pose"]
+    assert isinstance(pose, wire.Pose)
+    usec = pose.t // 1000
+
+    def encode() -> bytes:
+        args = px4.odometry_args(usec, pose.p, pose.q, pose.v, angular_velocity_frd=pose.w)
+        return bytes(mav.odometry_encode(**args).pack(mav))
+
+    raw = encode()
+    parser = mavlink2.MAVLink(None)
+    n = int(20_000 * scale)
+    args = px4.odometry_args(usec, pose.p, pose.q, pose.v, angular_velocity_frd=pose.w)
+    return {
+        "ODOMETRY args + encode + pack": per_call_us(encode, n),
+        "ODOMETRY encode + pack (pymavlink only)": per_call_us(
+            lambda: mav.odometry_encode(**args).pack(mav), n
+        ),
+        "ODOMETRY parse (pymavlink)": per_call_us(lambda: parser.parse_buffer(raw), n),
+        "bytes": float(len(raw)),
+    }
+
+
+def _stages(scale: float) -> dict[str, float]:
+    """The Python work each service does per pose, outside Zenoh (decode, process, encode)."""
+    from arena_common.geometry.frames import FrameTransform
+    from arena_common.mavlink.link import mavlink2
+    from arena_common.pipeline.vision import VisionFilter
+    from services.frame_transform import PoseConverter
+    from services.mocap_ingest import encode_pose
+
+    n = int(10_000 * scale)
+    now = time.time_ns()
+    body = natnet.RigidBody(1, (1.2, 0.9, -0.5), (0.0, 0.38268343, 0.0, 0.92387953), 0.0002, True, 1)
+    mocap_raw = encode_pose(now, 1, body, True, "d1", 5_380_000, 12.5, "echo", now)
+    enc_m = wire.MocapPose.encoding()
+    conv = PoseConverter(FrameTransform())
+    state = {"t": now}
+
+    def transform() -> bytes:
+        state["t"] += 5_555_555
+        m = wire.decode_any("arena/d1/mocap", mocap_raw, enc_m)
+        assert isinstance(m, wire.MocapPose)
+        return conv.convert("d1", m.replace(t=state["t"])).encode()
+
+    pose_raw = transform()
+    enc_p = wire.Pose.encoding()
+    filt = VisionFilter(400.0)
+
+    def downsample() -> None:
+        state["t"] += 5_555_555
+        pose = wire.decode_any("arena/d1/pose", pose_raw, enc_p)
+        assert isinstance(pose, wire.Pose)
+        d = filt.process(pose.replace(t=state["t"]))
+        if d.vision is not None:
+            d.vision.encode()
+
+    mav = mavlink2.MAVLink(None, srcSystem=245, srcComponent=191)
+
+    def gateway() -> bytes:
+        pose = wire.decode_any("arena/d1/vision", pose_raw, enc_p)
+        assert isinstance(pose, wire.Pose)
+        args = px4.odometry_args(pose.t // 1000, pose.p, pose.q, pose.v, angular_velocity_frd=pose.w)
+        return bytes(mav.odometry_encode(**args).pack(mav))
+
+    return {
+        "ingest: encode MocapPose (per body)": per_call_us(
+            lambda: encode_pose(now, 1, body, True, "d1", 5_380_000, 12.5, "echo", now), n
+        ),
+        "transform: decode + convert + encode": per_call_us(transform, n),
+        "downsampler: decode + filter + encode": per_call_us(downsample, n),
+        "gateway: decode + ODOMETRY encode": per_call_us(gateway, n),
+    }
+
+
+def _recorder(scale: float) -> dict[str, float]:
+    from arena_common.recording.mcap import RecordingWriter, Sample
+
+    pose = wire_examples()["Pose"]
+    assert isinstance(pose, wire.Pose)
+    raw = pose.encode()
+    enc = wire.Pose.encoding()
+    n = max(200, int(20_000 * scale))
+    out: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="arena-bench-") as tmp:
+        for encoding in ("json", "msgpack"):
+            path = Path(tmp) / f"bench-{encoding}.mcap"
+            samples = [Sample(f"arena/d{i % 10 + 1}/pose", raw, enc, pose.t + i) for i in range(n)]
+            start = time.perf_counter_ns()
+            writer = RecordingWriter(path, encoding=encoding)
+            for s in samples:
+                writer.record(s)
+            writer.close()
+            dt = (time.perf_counter_ns() - start) / 1e9
+            out[f"{encoding} (messages/s)"] = n / dt
+            out[f"{encoding} (MB/s of file)"] = path.stat().st_size / dt / 1e6
+    return out
+
+
+def run_micro(scale: float = 1.0) -> dict[str, Any]:
+    """Every micro-benchmark; a dict of sections (µs per call unless the name says otherwise)."""
+    return {
+        "natnet_decode_us": _natnet(scale),
+        "transform_us": _transform(scale),
+        "stages_us": _stages(scale),
+        "mavlink_us": _mavlink(scale),
+        "wire_us": _wire(scale),
+        "recorder": _recorder(scale),
+    }

@@ -1,0 +1,1 @@
+"""Developer tools (the wire-doc generator, the layer check): not part of the installed runtime."""
