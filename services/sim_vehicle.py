@@ -7,7 +7,9 @@ Each ``autopilot = "sim"`` vehicle of the config (or each one named with ``--veh
 ``--truth-rate``) each true pose is published as a :class:`~arena_common.core.wire.Pose` on
 ``arena/<name>/truth`` for the Motive emulator; its time ``t`` is the simulated clock, which reads like
 the wall clock at ``--speed 1``.  A vehicle whose config names a ``signing_key_file`` signs its MAVLink
-and refuses unsigned or replayed input, as PX4 with signing required does.
+and refuses unsigned or replayed input, as PX4 with signing required does.  ``--estimate-lag`` passes
+each estimate through a first-order lag (PX4 v1.16's trailed the truth by ~0.16 s with its default vision
+noise, see docs/px4.md; 0, the default, hands on the filter's estimate as it is).
 """
 
 from __future__ import annotations
@@ -59,8 +61,13 @@ def select_vehicles(cfg: ArenaConfig, names: Sequence[str] = ()) -> list[str]:
     return [v.name for v in chosen]
 
 
-def build_autopilots(cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = ()) -> list[SimAutopilot]:
-    """One simulated autopilot per selected vehicle, sharing ``clock``; closes them all on failure."""
+def build_autopilots(
+    cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = (), *, estimate_lag: float = 0.0
+) -> list[SimAutopilot]:
+    """One simulated autopilot per selected vehicle, sharing ``clock``; closes them all on failure.
+
+    ``estimate_lag`` (s): time constant of the first-order lag of each vehicle's estimate (0: none).
+    """
     built: list[SimAutopilot] = []
     # "arena": as a lab's vehicle after `arena px4 setup`; "px4": a fresh PX4 with its defaults.
     preset = (
@@ -81,6 +88,7 @@ def build_autopilots(cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = (
                     seed=cfg.sim.seed + index,
                     params=preset,
                     signing_key=vehicle_key(cfg, name),
+                    estimate_lag=estimate_lag,
                 )
             )
     except BaseException:
@@ -128,21 +136,25 @@ def main(
     vehicles: Sequence[str] = (),
     speed: float | None = None,
     truth_rate: float = PHYSICS_RATE,
+    estimate_lag: float = 0.0,
     host: str | None = None,
     stop: threading.Event | None = None,
 ) -> None:
     """Run the simulated vehicles until ``stop`` is set (or SIGINT/SIGTERM in the main thread).
 
     ``speed`` overrides ``sim.speed``; ``truth_rate`` (Hz of simulated time) limits how often each
-    true pose is published (at most once per physics tick).
+    true pose is published (at most once per physics tick); ``estimate_lag`` (s, 0..5) lags each
+    vehicle's estimate behind its filter (PX4's trails the truth a little, see docs/px4.md).
     """
     if not truth_rate > 0:
         raise ConfigError(f"truth rate must be positive, got {truth_rate}")
+    if not (math.isfinite(estimate_lag) and 0.0 <= estimate_lag <= 5.0):
+        raise ConfigError(f"estimate lag must be within 0..5 s, got {estimate_lag}")
     names = select_vehicles(cfg, vehicles)  # fail on an unknown name before opening anything
     clock = SimClock(cfg.sim.speed if speed is None else speed)
     period_ns = int(1e9 / truth_rate)
     with running(SERVICE, cfg, options, host=host, stop=stop) as svc:
-        autopilots = build_autopilots(cfg, clock, names)
+        autopilots = build_autopilots(cfg, clock, names, estimate_lag=estimate_lag)
         try:
             for ap in autopilots:
                 ap.on_tick = _truth_publisher(
@@ -174,6 +186,12 @@ def cli(
     truth_rate: Annotated[
         float, typer.Option("--truth-rate", help="True poses published per simulated second, per vehicle.")
     ] = PHYSICS_RATE,
+    estimate_lag: Annotated[
+        float,
+        typer.Option(
+            "--estimate-lag", help="Time constant (s) of a first-order lag of each estimate (0: none)."
+        ),
+    ] = 0.0,
     config: ConfigOpt = None,
     mode: ModeOpt = None,
     connect: ConnectOpt = None,
@@ -192,6 +210,7 @@ def cli(
             vehicles=vehicle or (),
             speed=speed,
             truth_rate=truth_rate,
+            estimate_lag=estimate_lag,
             host=host,
         )
     except (ConfigError, SimAutopilotError) as exc:

@@ -29,10 +29,14 @@ from arena_common.sim.autopilot import (
     TimesyncFilter,
     run_autopilots,
 )
+from arena_common.sim.params import SIM_EXTRA_DEFAULTS
 from arena_common.sim.physics import BatteryParams
 
 SPEED = 4.0
 SYSID = 7
+MAV_TYPE_GCS = 6
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+ORIGIN = (47.397742, 8.545594, 0.0)
 ARENA = {name: value for name, (value, _) in px4.ARENA_REQUIRED_PARAMS.items()}
 
 
@@ -53,6 +57,7 @@ class Gcs:
         self.mocap = False
         self.mocap_rate = 40.0
         self.mocap_type = px4.MAV_ESTIMATOR_TYPE_VISION
+        self.mocap_frame = px4.MAV_FRAME_LOCAL_NED
         self.setpoint: dict[str, Any] | None = None
         self.sp_rate = 20.0
         self._next_mocap = 0.0
@@ -60,6 +65,8 @@ class Gcs:
         self.heartbeat: Any = None
         self.heartbeats = 0
         self.statustexts: list[str] = []
+        self.text_ids: list[tuple[int, int]] = []
+        self._text_at: dict[int, int] = {}
         self.acks: list[Any] = []
         self.params: dict[str, Any] = {}
         self.local_position: Any = None
@@ -68,6 +75,10 @@ class Gcs:
         self.timesync_requests: list[tuple[int, int, float]] = []
         self.timesync_replies: list[Any] = []
         self.sources: set[int] = set()
+        self.hb_type: int | None = MAV_TYPE_GCS  # what the gateway sends; None: no heartbeat
+        self._next_hb = 0.0
+        self.messages: dict[str, list[Any]] = {}  # every message of the types in ``keep``
+        self.keep: set[str] = set()
 
     def close(self) -> None:
         self.conn.close()
@@ -93,9 +104,21 @@ class Gcs:
     def send_mocap(self) -> None:
         assert self.ap is not None
         pose = self.ap.true_pose()
-        args = px4.odometry_args(time.monotonic_ns() // 1000, pose.position, pose.q, pose.velocity)
+        args = px4.odometry_args(
+            time.monotonic_ns() // 1000, pose.position, pose.q, pose.velocity, frame_id=self.mocap_frame
+        )
         args["estimator_type"] = self.mocap_type
         self.conn.mav.odometry_send(**args)
+
+    def set_origin(self, origin: tuple[float, float, float] = ORIGIN) -> None:
+        """SET_GPS_GLOBAL_ORIGIN, as the gateway gives one to an EKF without GPS; waits for the echo."""
+        lat, lon, alt = origin
+        self.messages.pop("GPS_GLOBAL_ORIGIN", None)
+        self.keep.add("GPS_GLOBAL_ORIGIN")
+        self.conn.mav.set_gps_global_origin_send(
+            self.target, round(lat * 1e7), round(lon * 1e7), round(alt * 1e3), 0
+        )
+        self.wait_for(lambda: bool(self.messages.get("GPS_GLOBAL_ORIGIN")), 2.0, "GPS_GLOBAL_ORIGIN")
 
     def send_setpoint(self) -> None:
         assert self.setpoint is not None
@@ -110,6 +133,9 @@ class Gcs:
 
     def pump(self, wait_real: float = 0.002) -> None:
         now = self.clock.now()
+        if self.hb_type is not None and now >= self._next_hb:
+            self._next_hb = now + 1.0
+            self.conn.mav.heartbeat_send(self.hb_type, 8, 0, 0, 4)  # MAV_AUTOPILOT_INVALID, ACTIVE
         if self.mocap and now >= self._next_mocap:
             self._next_mocap = max(self._next_mocap + 1.0 / self.mocap_rate, now - 0.05)
             self.send_mocap()
@@ -126,12 +152,21 @@ class Gcs:
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()
         self.counts[kind] = self.counts.get(kind, 0) + 1
+        if kind in self.keep:
+            self.messages.setdefault(kind, []).append(msg)
         self.sources.add(msg.get_srcSystem())
         if kind == "HEARTBEAT":
             self.heartbeat = msg
             self.heartbeats += 1
         elif kind == "STATUSTEXT":
-            self.statustexts.append(msg.text)
+            # Long texts come in 50-character chunks sharing an id (chunk_seq 0, 1, …), as from PX4.
+            if msg.chunk_seq > 0 and msg.id in self._text_at:
+                i = self._text_at[msg.id]
+                self.statustexts[i] = (self.statustexts[i] + msg.text).rstrip("\t")
+            else:
+                self._text_at[msg.id] = len(self.statustexts)
+                self.statustexts.append(msg.text.rstrip("\t"))
+            self.text_ids.append((msg.id, msg.chunk_seq))
         elif kind == "COMMAND_ACK":
             self.acks.append(msg)
         elif kind == "PARAM_VALUE":
@@ -173,6 +208,7 @@ class Gcs:
         )
         ack = next(a for a in self.acks[n:] if a.command == command)
         assert (ack.target_system, ack.target_component) == (200, 191)
+        self.run_for(0.05)  # the STATUSTEXT explaining a refusal leaves the vehicle right after its ack
         return int(ack.result)
 
     def set_param(self, name: str, value: float, ptype: int | None = None, target: int | None = None) -> None:
@@ -278,7 +314,7 @@ def test_parameters_bytewise(make_vehicle: Callable[..., tuple[SimAutopilot, Gcs
     # The full list, with consistent indices and count.
     gcs.params.clear()
     gcs.conn.mav.param_request_list_send(SYSID, 1)
-    count = len(px4.PX4_DEFAULTS)
+    count = len(px4.PX4_DEFAULTS) + len(SIM_EXTRA_DEFAULTS)
     gcs.wait_for(lambda: len(gcs.params) >= count, 3.0, "all parameters")
     assert {pv.param_count for pv in gcs.params.values()} == {count}
     assert sorted(pv.param_index for pv in gcs.params.values()) == list(range(count))
@@ -297,8 +333,8 @@ def test_arming_refused_without_vision(make_vehicle: Callable[..., tuple[SimAuto
     gcs.set_params(ARENA)
     result = gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1)
     assert result == px4.MAV_RESULT_TEMPORARILY_REJECTED
-    gcs.wait_for(lambda: gcs.texts_with("position estimate") != [], 1.0, "the reason")
-    assert gcs.texts_with("ODOMETRY")
+    gcs.wait_for(lambda: gcs.texts_with("Resolve system health") != [], 1.0, "PX4's refusal")
+    assert gcs.texts_with("position estimate") and gcs.texts_with("ODOMETRY")  # the reasons, before it
     gcs.run_for(1.0)
     assert not gcs.armed
 
@@ -313,6 +349,10 @@ def test_vision_not_fused_when_ev_ctrl_is_zero_then_fused(
     gcs.wait_for(lambda: gcs.texts_with("EKF2_EV_CTRL=0") != [], 1.0, "EKF2_EV_CTRL reason")
     gcs.set_params({"EKF2_EV_CTRL": 15})
     gcs.wait_for(lambda: gcs.texts_with("vision fusion started") != [], 1.0, "vision fusion")
+    # Hold (the mode PX4 boots in) needs a global position: an EKF origin, as the gateway gives one.
+    assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1) == px4.MAV_RESULT_TEMPORARILY_REJECTED
+    gcs.wait_for(lambda: gcs.texts_with("needs a global position") != [], 1.0, "global position reason")
+    gcs.set_origin()
     assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1) == px4.MAV_RESULT_ACCEPTED
     gcs.wait_for(lambda: gcs.armed, 1.0, "armed heartbeat")
     assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 0) == px4.MAV_RESULT_ACCEPTED
@@ -333,13 +373,13 @@ def test_offboard_flight_climb_hold_land(make_vehicle: Callable[..., tuple[SimAu
     gcs.set_params(ARENA)
     gcs.mocap = True
     gcs.wait_for(lambda: gcs.texts_with("vision fusion started") != [], 2.0, "vision fusion")
-    # No setpoint stream yet: OFFBOARD is refused, with the reason.
-    assert gcs.command(px4.MAV_CMD_DO_SET_MODE, 1, px4.MAIN_OFFBOARD) == px4.MAV_RESULT_TEMPORARILY_REJECTED
-    gcs.wait_for(lambda: gcs.texts_with("setpoint stream") != [], 1.0, "offboard refusal reason")
+    # No setpoint yet: disarmed, PX4 takes OFFBOARD anyway, and arming says what is missing.
+    assert gcs.command(px4.MAV_CMD_DO_SET_MODE, 1, px4.MAIN_OFFBOARD) == px4.MAV_RESULT_ACCEPTED
+    gcs.wait_for(lambda: gcs.mode == "OFFBOARD", 1.1, "OFFBOARD in the heartbeat")
+    assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1) == px4.MAV_RESULT_TEMPORARILY_REJECTED
+    gcs.wait_for(lambda: gcs.texts_with("no offboard signal") != [], 1.0, "offboard arming refusal reason")
     gcs.setpoint = {"z": -1.0}
     gcs.run_for(0.5)
-    assert gcs.command(px4.MAV_CMD_DO_SET_MODE, 1, px4.MAIN_OFFBOARD) == px4.MAV_RESULT_ACCEPTED
-    gcs.wait_for(lambda: gcs.mode == "OFFBOARD", 1.0, "OFFBOARD in the heartbeat")
     assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1) == px4.MAV_RESULT_ACCEPTED
     climb = gcs.wait_for(lambda: abs(gcs.height - 1.0) < 0.05, 5.0, "climb to 1 m within 5 s")
     assert 1.0 < climb < 5.0
@@ -383,27 +423,41 @@ def test_offboard_loss_lands_by_itself(make_vehicle: Callable[..., tuple[SimAuto
     gcs.wait_for(lambda: not gcs.armed, 4.0, "disarmed")
 
 
-def test_offboard_loss_with_px4_default_holds(make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]]) -> None:
+def test_offboard_loss_with_px4_default_lands_in_position_mode(
+    make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]],
+) -> None:
+    """COM_OBL_RC_ACT 0 (PX4's default): Position mode, where PX4 v1.16 without sticks lands in place."""
     ap, gcs = make_vehicle()
     gcs.fly_offboard_to(1.0)
-    gcs.set_params({"COM_OBL_RC_ACT": 0})  # PX4's default; no RC, so Position mode falls back to Hold
+    gcs.set_params({"COM_OBL_RC_ACT": 0})
+    xy = ap.true_pose().position[:2]
     gcs.setpoint = None
-    gcs.wait_for(lambda: gcs.mode == "AUTO.LOITER", 3.0, "hold failsafe")
-    gcs.run_for(2.0)
-    assert abs(-ap.true_pose().position[2] - 1.0) < 0.1 and gcs.armed
-    gcs.setpoint = {"z": -1.2}  # the stream is back: PX4 returns to offboard
-    gcs.wait_for(lambda: gcs.mode == "OFFBOARD", 2.0, "offboard regained")
+    gcs.wait_for(lambda: gcs.mode == "POSCTL", 3.0, "Position mode failsafe")
+    assert gcs.texts_with("Failsafe activated")
+    gcs.wait_for(lambda: ap.true_pose().position[2] == 0.0, 1.0 + 1.0 / 0.7 + 2.0, "landed")
+    assert math.dist(ap.true_pose().position[:2], xy) < 0.2  # where it was
+    gcs.wait_for(lambda: not gcs.armed, 4.0, "disarmed")
 
 
 def test_position_loss_failsafe_descends(make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]]) -> None:
+    """EKF2_NOAID_TOUT 1 s (the arena's): position invalid 0.6 s after the last sample, then Descend."""
     ap, gcs = make_vehicle()
     gcs.fly_offboard_to(1.0)
+    gcs.keep.add("LOCAL_POSITION_NED")
     gcs.mocap = False  # motion capture stops reaching the vehicle
-    took = gcs.wait_for(lambda: gcs.texts_with("no position estimate") != [], 2.0, "position-loss failsafe")
-    assert 0.35 <= took <= 0.6  # 400 ms without vision
+    gcs.wait_for(lambda: gcs.texts_with("no position estimate") != [], 2.0, "position-loss failsafe")
+    assert gcs.texts_with("Failsafe activated")
+    assert ap.failsafe is not None and ap.failsafe[:2] == ("descend", "position")
+    failsafe_at = ap.failsafe[2]
+    since_vision = failsafe_at - ap.sim.estimator.ev_hpos_fused_at  # vehicle time, not the test's
+    assert (
+        0.6 <= since_vision <= 0.6 + ap.CONTROL_PERIOD + ap.sim.dt + ap.skipped_time_s + 1e-6
+    )  # skipped: a starved CPU
     gcs.wait_for(lambda: gcs.mode == "AUTO.LAND", 1.5, "AUTO.LAND in the heartbeat")
     gcs.wait_for(lambda: ap.true_pose().position[2] == 0.0, 4.0, "descend to the floor")
     gcs.wait_for(lambda: not gcs.armed, 4.0, "disarmed")
+    # PX4 keeps sending LOCAL_POSITION_NED while the position is invalid.
+    assert len([m for m in gcs.messages["LOCAL_POSITION_NED"] if m.time_boot_ms * 1e-3 > failsafe_at]) > 30
 
 
 def test_low_battery_warns_then_lands(make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]]) -> None:
@@ -421,7 +475,7 @@ def test_forced_disarm_kills_motors_in_the_air(make_vehicle: Callable[..., tuple
     ap, gcs = make_vehicle()
     gcs.fly_offboard_to(1.0)
     assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 0) == px4.MAV_RESULT_TEMPORARILY_REJECTED
-    assert gcs.texts_with("not landed")
+    gcs.wait_for(lambda: gcs.texts_with("Disarming denied: not landed") != [], 1.0, "the reason")
     result = gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 0, px4.ARM_DISARM_FORCE_MAGIC)
     assert result == px4.MAV_RESULT_ACCEPTED
     gcs.wait_for(lambda: ap.true_pose().position[2] == 0.0, 1.0, "fall")
@@ -485,18 +539,26 @@ def test_messages_to_other_systems_are_ignored(make_vehicle: Callable[..., tuple
     gcs.conn.mav.command_long_send(SYSID, 99, px4.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
     gcs.run_for(1.5)
     assert gcs.acks == [] and not gcs.armed and ap.param("COM_OF_LOSS_T") == 1.0
-    # Setpoints for another system do not make a stream for this one.
+    # Setpoints for another system do not make a stream for this one: OFFBOARD is taken (disarmed, as
+    # PX4 does) but arming in it is refused.
     gcs.setpoint = {"z": -1.0}
     gcs.target = SYSID + 1
     gcs.run_for(1.0)
+    gcs.setpoint = None
     gcs.target = SYSID
-    assert gcs.command(px4.MAV_CMD_DO_SET_MODE, 1, px4.MAIN_OFFBOARD) == px4.MAV_RESULT_TEMPORARILY_REJECTED
-    # Manual modes are refused (no manual control input in the arena); unsupported frames ignored.
-    assert gcs.command(px4.MAV_CMD_DO_SET_MODE, 1, px4.MAIN_POSCTL) == px4.MAV_RESULT_TEMPORARILY_REJECTED
-    gcs.setpoint = {"z": -1.0, "frame": px4.MAV_FRAME_BODY_NED}
+    assert gcs.command(px4.MAV_CMD_DO_SET_MODE, 1, px4.MAIN_OFFBOARD) == px4.MAV_RESULT_ACCEPTED
+    assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1) == px4.MAV_RESULT_TEMPORARILY_REJECTED
+    # Manual modes can be selected but not armed in (no manual control input in the arena).
+    assert gcs.command(px4.MAV_CMD_DO_SET_MODE, 1, px4.MAIN_POSCTL) == px4.MAV_RESULT_ACCEPTED
+    gcs.wait_for(lambda: gcs.mode == "POSCTL", 1.1, "POSCTL in the heartbeat")
+    assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1) == px4.MAV_RESULT_TEMPORARILY_REJECTED
+    assert gcs.texts_with("No manual control input")
+    # Frames PX4 does not take are refused with its text, and make no stream.
+    assert gcs.command(px4.MAV_CMD_DO_SET_MODE, 1, px4.MAIN_OFFBOARD) == px4.MAV_RESULT_ACCEPTED
+    gcs.setpoint = {"z": -1.0, "frame": px4.MAV_FRAME_LOCAL_OFFSET_NED}
     gcs.run_for(1.0)
-    assert gcs.texts_with("frame 8 unsupported")
-    assert gcs.command(px4.MAV_CMD_DO_SET_MODE, 1, px4.MAIN_OFFBOARD) == px4.MAV_RESULT_TEMPORARILY_REJECTED
+    assert gcs.texts_with("SET_POSITION_TARGET_LOCAL_NED coordinate frame 7 unsupported")
+    assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1) == px4.MAV_RESULT_TEMPORARILY_REJECTED
 
 
 def test_timesync_initiated_and_answered(make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]]) -> None:

@@ -159,17 +159,72 @@ def test_vision_rules_start_timeout_and_bits() -> None:
     assert sim.vision_from_truth()  # a second one 40 ms later does
     assert est.xy_valid and est.vision_fusing
     fly(sim, 0.39, vision=False)
+    assert est.xy_valid and est.vision_fusing and not est.dead_reckoning
+    fly(sim, 0.02, vision=False)
+    assert not est.vision_fusing  # 400 ms without vision: fusion stopped...
+    assert est.xy_valid and est.dead_reckoning  # ... the IMU carries on (EKF2_NOAID_TOUT, 5 s)
+    fly(sim, 4.6 - 0.41 - 0.01, vision=False)
     assert est.xy_valid
     fly(sim, 0.02, vision=False)
-    assert not est.xy_valid and not est.vision_fusing  # 400 ms without vision: lost
+    assert not est.xy_valid and not est.dead_reckoning  # 4.6 s: invalid, as PX4 v1.16 declared it
     sim.vision_from_truth()
     fly(sim, 0.25, vision=False)
     assert not sim.vision_from_truth()  # 250 ms apart: too slow to restart
     sim.step()
     assert sim.vision_from_truth()
     est.ev_ctrl = 8  # yaw only: no position
-    fly(sim, 0.5)
+    fly(sim, 5.0)
     assert not est.xy_valid and est.yaw_valid
+
+
+@pytest.mark.parametrize(("noaid", "invalid_after"), [(0.5, 0.6), (1.0, 0.6), (3.0, 2.6), (5.0, 4.6)])
+def test_no_aid_timeout(noaid: float, invalid_after: float) -> None:
+    """EKF2_NOAID_TOUT: valid while dead reckoning, invalid NOAID − 0.4 s (≥ 0.6 s) after the last sample."""
+    sim = make_sim()
+    sim.estimator.noaid_timeout_s = noaid
+    fly(sim, 0.5)
+    sim.vision_from_truth()
+    fly(sim, invalid_after - 0.01, vision=False)
+    assert sim.estimator.xy_valid
+    fly(sim, 0.02, vision=False)
+    assert not sim.estimator.xy_valid
+
+
+def test_frd_vision_yaw_steers_but_never_aligns_north() -> None:
+    sim = make_sim()
+    est = sim.estimator
+    for i in range(100):
+        if i % VISION_EVERY == 0:
+            b = sim.body
+            yaw = quat_yaw(b.attitude) + 0.3
+            est.fuse_vision(sim.time, sim.time, b.position, yaw, None, 0, north_ref=False)
+        sim.step()
+    assert est.xy_valid and est.yaw_aligned and not est.north_aligned
+    assert est.yaw == pytest.approx(0.3, abs=0.01)  # the vision heading is used
+    fly(sim, 0.2)  # LOCAL_NED vision aligns it
+    assert est.north_aligned
+
+
+def test_output_lag_is_a_first_order_lag() -> None:
+    """With output_lag_s the estimate handed on trails the filter state by that time constant."""
+    sim = make_sim()
+    est = sim.estimator
+    est.output_lag_s = 0.2
+    fly(sim, 0.5)
+    sim.body.position = (1.0, 0.0, 0.0)  # carried 1 m north: vision pulls the state, the output follows
+    ticks = round(0.2 / sim.dt)
+    for i in range(ticks):
+        if i % VISION_EVERY == 0:
+            b = sim.body
+            est.fuse_vision(sim.time, sim.time, b.position, quat_yaw(b.attitude), None, None)
+        sim.step()
+    assert est.position[0] > 0.6
+    assert 0.25 < est.out_position[0] < est.position[0] - 0.1  # about 1 − e⁻¹ of the way after one τ
+    fly(sim, 2.0)
+    assert est.out_position[0] == pytest.approx(1.0, abs=0.02)
+    est.output_lag_s = 0.0
+    fly(sim, 0.01)
+    assert est.out_position == est.position
 
 
 def test_vision_reset_jumps_estimate() -> None:
@@ -178,6 +233,7 @@ def test_vision_reset_jumps_estimate() -> None:
     sim.body.position = (2.0, 1.0, 0.0)  # the vehicle is carried elsewhere
     sim.vision_from_truth(reset_counter=1)
     assert sim.estimator.position[:2] == pytest.approx((2.0, 1.0), abs=1e-6)
+    assert sim.estimator.out_position[:2] == pytest.approx((2.0, 1.0), abs=1e-6)  # no lag across a reset
 
 
 def test_ev_delay_compensates_latency() -> None:

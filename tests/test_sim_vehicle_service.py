@@ -167,6 +167,15 @@ def test_unknown_vehicle_and_bad_options(arena_config: Callable[..., ArenaConfig
         sim_vehicle.main(cfg, truth_rate=0.0)
     with pytest.raises(SimAutopilotError, match="speed"):
         sim_vehicle.main(cfg, speed=0.0)
+    with pytest.raises(ConfigError, match="estimate lag"):
+        sim_vehicle.main(cfg, estimate_lag=-0.1)
+    clock = SimClock(speed=SPEED)
+    aps = sim_vehicle.build_autopilots(cfg, clock, estimate_lag=0.15)
+    try:
+        assert [ap.sim.estimator.output_lag_s for ap in aps] == [0.15]
+    finally:
+        for ap in aps:
+            ap.close()
     assert sim_vehicle.select_vehicles(cfg) == ["d1"]
 
 

@@ -165,12 +165,25 @@ class Vehicle:
                     )
                 self._cond.wait(min(left, 0.1))
 
+    def _catch_up(self, t_ns: int, timeout: float = 1.0) -> None:
+        """Wait (briefly) for a state the gateway stamped at or after ``t_ns`` (its clock): the attributes
+        then show what a confirmed command did (``mode`` after :meth:`set_mode`…)."""
+        if t_ns <= 0:
+            return  # an answer without the gateway's time
+        with self._cond:
+            self._cond.wait_for(lambda: self._state is not None and self._state.t >= t_ns, timeout)
+
     # -- commands -----------------------------------------------------------------------------------
     def command(self, op: str, timeout: float = 5.0, **args: Any) -> wire.CommandResult:
-        """Send a raw command to the gateway; raise a typed error unless it succeeded."""
+        """Send a raw command to the gateway; raise a typed error unless it succeeded.
+
+        It returns once the vehicle's attributes show the command's effect (a state the gateway stamped
+        after its answer arrived, within a second), so ``mode`` reads the mode just confirmed.
+        """
         cmd = wire.Command(op=op, args=args, src=self._arena.src, timeout=timeout, t=wire.now_ns())
         res = self._arena.bus.request(keys.cmd(self.name), cmd, timeout)
         if res.ok:
+            self._catch_up(res.t)
             return res
         text = f"{self.name}: {op} {res.result}: {res.reason}".rstrip(": ")
         if res.result == "TIMEOUT" and not self._arena.is_alive(self.name):

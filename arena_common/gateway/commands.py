@@ -4,7 +4,9 @@ Every :class:`~arena_common.core.wire.Command` on ``arena/<drone>/cmd`` is answe
 :class:`~arena_common.core.wire.CommandResult` whose ``result`` is the autopilot's COMMAND_ACK result
 (``ACCEPTED``, ``TEMPORARILY_REJECTED``, ``DENIED``…), ``TIMEOUT`` after the retries, ``REFUSED`` with the
 reason when the arena's rules forbid it, ``FAILED`` when the autopilot accepted but did not do it, or
-``ERROR`` for a malformed request.  Operations and their ``args``:
+``ERROR`` for a malformed request.  Its ``t`` is the gateway's clock when answered: every State the
+gateway stamps from then on shows what the command did (a client waits for one).  Operations and their
+``args``:
 
 =============  ==========================================  ==================================================
 op             args                                        what happens
@@ -21,7 +23,8 @@ takeoff        height (m, default 1.0)                     MIS_TAKEOFF_ALT := he
 land           —                                           NAV_LAND at the current position (AUTO.LAND)
 hold           —                                           DO_SET_MODE AUTO.LOITER, confirmed by heartbeat
 mode           mode (PX4 name: OFFBOARD, AUTO.LAND…)       DO_SET_MODE, confirmed by heartbeat; OFFBOARD is
-                                                           refused unless a setpoint stream is live
+                                                           refused unless a setpoint stream is live, manual
+                                                           modes (POSCTL, ALTCTL…) always
 goto           p [n, e, d] m, yaw (rad, default current),  the gateway streams a position carrot toward p
                tol (m, default 0.1), wait (bool)           (refused outside the safe volume or on the
                                                            ground), switches to OFFBOARD, and holds p until
@@ -33,9 +36,10 @@ reboot         —                                           PREFLIGHT_REBOOT_SH
 param_get      name                                        value {name, value, type}
 param_set      name, value                                 written in the vehicle's type, read back
 check          —                                           the arena parameters, value {ok, params: …}
-setup          —                                           refused when armed; writes the differing ones;
-                                                           when one needs a reboot (the autopilot's own
-                                                           metadata says which), reboots the autopilot and
+setup          —                                           refused when armed; writes the differing ones,
+                                                           saves them (PREFLIGHT_STORAGE); when one needs a
+                                                           reboot (the autopilot's own metadata says
+                                                           which), reboots the autopilot and
                                                            waits for it; then checks every value again.
                                                            Until that reboot, arming is refused
 ping           —                                           value {link, mode, armed, rtt, …}
@@ -52,6 +56,7 @@ from typing import Any
 from arena_common.core import wire
 from arena_common.core.config import ArenaSpec, VehicleSpec
 from arena_common.gateway.events import EventSink
+from arena_common.gateway.origin import GlobalOrigin
 from arena_common.gateway.setpoints import SetpointForwarder, outside, yaw_problem
 from arena_common.gateway.state import VehicleState
 from arena_common.gateway.timesync import TimeSync
@@ -62,6 +67,15 @@ from arena_common.mavlink.protocols import MavCommander, ParamClient, SetupCheck
 __all__ = ["CommandExecutor"]
 
 NAN = math.nan
+#: PX4 main modes flown with sticks: PX4 accepts them disarmed, and fails safe in the air without input.
+_MANUAL_MAINS = frozenset(
+    {px4.MAIN_MANUAL, px4.MAIN_ALTCTL, px4.MAIN_POSCTL, px4.MAIN_ACRO, px4.MAIN_STABILIZED}
+)
+MAV_CMD_PREFLIGHT_STORAGE = 245  # param1 1: write the parameters to permanent storage now
+#: Results the autopilot gave (COMMAND_ACK, or acknowledged but not done) whose reason it may still be
+#: sending: the answer waits up to TEXT_GRACE_S for its STATUSTEXT.
+_SAID_BY_AUTOPILOT = frozenset({"DENIED", "TEMPORARILY_REJECTED", "FAILED", "UNSUPPORTED"})
+TEXT_GRACE_S = 0.2
 
 
 class _BadArgs(ValueError):
@@ -116,6 +130,7 @@ class CommandExecutor:
         forwarder: SetpointForwarder,
         timesync: TimeSync,
         events: EventSink,
+        origin: GlobalOrigin | None = None,
         vision_stale: float = 0.2,
         goto_tolerance: float = 0.1,
     ) -> None:
@@ -129,6 +144,7 @@ class CommandExecutor:
         self.forwarder = forwarder
         self.timesync = timesync
         self.events = events
+        self.origin = origin
         self.vision_stale = vision_stale
         self.goto_tolerance = goto_tolerance
         self._ops: dict[str, Callable[[Mapping[str, Any], float], wire.CommandResult]] = {
@@ -168,6 +184,12 @@ class CommandExecutor:
                 result = wire.CommandResult(False, "ERROR", f"{cmd.op}: {exc}")
         if not result.ok and result.result not in ("REFUSED", "ERROR"):
             texts = self._texts_since(started_ns)
+            if not texts and result.result in _SAID_BY_AUTOPILOT:
+                # PX4 sends its reason (STATUSTEXT) next to the COMMAND_ACK, often a millisecond after it.
+                until = min(time.monotonic() + TEXT_GRACE_S, deadline + TEXT_GRACE_S)
+                while not texts and time.monotonic() < until:
+                    time.sleep(0.01)
+                    texts = self._texts_since(started_ns)
             if texts:
                 reason = f"{result.reason}; " if result.reason else ""
                 result = result.replace(reason=f"{reason}autopilot says: {' | '.join(texts)}")
@@ -176,7 +198,8 @@ class CommandExecutor:
             self.events.emit(
                 "command", text, 6 if result.ok else 4, op=cmd.op, result=result.result, src=cmd.src
             )
-        return result
+        # Stamped with our clock: every State stamped from now on already shows the command's effect.
+        return result.replace(t=wire.now_ns())
 
     def _texts_since(self, t_ns: int) -> list[str]:
         texts = [
@@ -221,6 +244,9 @@ class CommandExecutor:
                 report = self.setup.report
                 wrong = ", ".join(report.get("wrong", []) + report.get("missing", [])) or "not checked"
                 return f"arena parameters not set ({wrong}): run `arena px4 setup {self.vehicle.name}`"
+        if self.origin is not None:
+            # PX4 arms in Hold only with a global position: let the EKF origin exchange finish first.
+            self.origin.wait_settled(deadline - 0.5)
         age = self.vision.age(time.monotonic())
         if age is None:
             return "no vision pose sent to the autopilot yet"
@@ -266,6 +292,8 @@ class CommandExecutor:
     def _mode(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
         main, sub = px4.mode_from_name(_string(args, "mode"))
         name = px4.mode_name(main, sub)
+        if main in _MANUAL_MAINS:
+            return _refused(f"{name} needs manual control input, which the arena never sends")
         if main != px4.MAIN_OFFBOARD:
             return self._set_mode(name, deadline)
         before = self.forwarder.latched
@@ -381,6 +409,17 @@ class CommandExecutor:
         report = self.setup.setup(deadline)
         if not report["complete"]:
             return _result("TIMEOUT", "no parameter answered", **report)
+        if report.get("written"):
+            # PX4 saves changed parameters a moment later (measured: not yet after 0.2 s, done after 3 s):
+            # a power-cycle right after setup would lose them.  Save now.
+            saved = self.commander.command(MAV_CMD_PREFLIGHT_STORAGE, (1,), deadline)
+            report = {**report, "saved": saved}
+            if saved != "ACCEPTED":
+                self.events.emit(
+                    "setup",
+                    f"saving the parameters: {saved} (they are saved a moment later by themselves)",
+                    4,
+                )
         if report["ok"] and self.setup.reboot_pending:
             pending = ", ".join(self.setup.reboot_pending)
             rebooted = self._reboot({}, deadline)

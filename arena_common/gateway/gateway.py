@@ -181,6 +181,7 @@ class Gateway:
             forwarder=self.forwarder,
             timesync=self.timesync,
             events=self.events,
+            origin=self.origin,
             vision_stale=o.vision_stale,
         )
         self.telemetry = TelemetryPublisher(bus, v.name, o.telemetry_rate, exclude=(MSG["TIMESYNC"],))

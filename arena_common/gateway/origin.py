@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import threading
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -63,7 +65,7 @@ class GlobalOrigin:
         *,
         period: float = 1.0,
         attempts: int = 5,
-        ask_s: float = 2.0,
+        ask_s: float = 1.0,
     ) -> None:
         if not 1 <= int(target_system) <= 250:
             raise GatewayError(f"the origin's target system must be within 1..250, got {target_system}")
@@ -83,9 +85,15 @@ class GlobalOrigin:
         self._asking_until = -math.inf
         self._left = 0
         self._next = math.inf
+        self._settled = threading.Event()  # kept, confirmed, or given up: arming need not wait for it
+
+    def wait_settled(self, deadline: float) -> bool:
+        """Wait (until the monotonic ``deadline``) for the origin to be kept, confirmed or given up."""
+        return self._settled.wait(max(0.0, deadline - time.monotonic()))
 
     def request(self, now: float) -> None:
         """Ask whether the autopilot has an origin; give it ours if it has none."""
+        self._settled.clear()
         self.confirmed = self.kept = False
         self.reported = None
         self._asking_until = now + self.ask_s
@@ -107,6 +115,7 @@ class GlobalOrigin:
             return
         if self._left <= 0:
             self._next = math.inf
+            self._settled.set()
             lat, lon, alt = self.origin
             self.events.emit(
                 "setup",
@@ -132,6 +141,7 @@ class GlobalOrigin:
                 return  # not asked for (a stream); our request decides
             self.kept = True
             self._next = math.inf
+            self._settled.set()
             lat, lon, alt = self.reported
             self.events.emit(
                 "setup",
@@ -145,6 +155,7 @@ class GlobalOrigin:
         if match and not self.confirmed:
             self.confirmed = True
             self._next = math.inf
+            self._settled.set()
             lat, lon, alt = self.origin
             self.events.emit(
                 "setup", f"EKF origin set: {lat:.7f}, {lon:.7f}, {alt:.2f} m", 6, origin=list(self.origin)

@@ -6,9 +6,12 @@ Parts, all advanced by :meth:`QuadSim.step` at a fixed tick (250 Hz by default):
   at ``down = 0`` (positive down, so the vehicle rests at ``down ≈ 0`` and cannot go below it).
 - :class:`Battery` — a LiPo pack whose charge drains with the motors' power and whose voltage sags
   with load; low voltage reduces the available thrust.
-- :class:`Estimator` — a complementary filter standing for EKF2: IMU prediction (with a small
-  accelerometer bias), external-vision fusion on a delayed horizon (``EKF2_EV_DELAY``) controlled by
-  ``EKF2_EV_CTRL`` bits, barometer height as fallback, magnetometer or gyro yaw when vision yaw is off.
+- :class:`~arena_common.sim.estimator.Estimator` (module :mod:`~arena_common.sim.estimator`) — a
+  complementary filter standing for EKF2: IMU prediction (with a small accelerometer bias), external-vision
+  fusion on a delayed horizon (``EKF2_EV_DELAY``) controlled by
+  ``EKF2_EV_CTRL`` bits, barometer height as fallback, magnetometer or gyro yaw when vision yaw is off,
+  inertial dead reckoning for ``EKF2_NOAID_TOUT`` after vision stops, and an optional first-order lag of
+  the estimate it hands on (PX4's output lags the truth a little).
 - :class:`Controller` — PX4's multicopter cascade: position P → velocity PID → acceleration →
   thrust vector and attitude (tilt limited) → attitude P (reduced attitude, yaw weighted) → rate PID.
 - :class:`LandDetector` — ground contact, low thrust and no motion for a while → landed.
@@ -22,10 +25,30 @@ from __future__ import annotations
 import enum
 import math
 import random
-from collections import deque
 from dataclasses import dataclass, field
 
+from arena_common.sim.estimator import EV_CTRL_HPOS, EV_CTRL_VEL, EV_CTRL_VPOS, EV_CTRL_YAW, Estimator
+from arena_common.sim.quat import (
+    Quat,
+    Vec3,
+    quat_conj,
+    quat_from_euler,
+    quat_mul,
+    quat_normalize,
+    quat_rotate,
+    quat_rotate_inverse,
+    quat_to_euler,
+    quat_yaw,
+    wrap_pi,
+)
+from arena_common.sim.quat import clamp as _clamp
+from arena_common.sim.quat import quat_from_dcm_columns as _quat_from_dcm_columns
+
 __all__ = [
+    "EV_CTRL_HPOS",
+    "EV_CTRL_VEL",
+    "EV_CTRL_VPOS",
+    "EV_CTRL_YAW",
     "GRAVITY",
     "Battery",
     "BatteryParams",
@@ -39,128 +62,23 @@ __all__ = [
     "RigidBody",
     "Setpoint",
     "SimPhysicsError",
+    "quat_conj",
     "quat_from_euler",
+    "quat_mul",
+    "quat_normalize",
+    "quat_rotate",
+    "quat_rotate_inverse",
     "quat_to_euler",
+    "quat_yaw",
+    "wrap_pi",
 ]
 
 GRAVITY = 9.80665
 NAN = math.nan
 
-Vec3 = tuple[float, float, float]
-Quat = tuple[float, float, float, float]
-
 
 class SimPhysicsError(ValueError):
     """Invalid physical parameter or state given to the simulator."""
-
-
-# --- quaternion helpers (w, x, y, z; body → world) --------------------------------------------------
-
-
-def quat_mul(a: Quat, b: Quat) -> Quat:
-    """Hamilton product ``a ⊗ b``."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
-def quat_conj(q: Quat) -> Quat:
-    """Conjugate (inverse of a unit quaternion)."""
-    return (q[0], -q[1], -q[2], -q[3])
-
-
-def quat_normalize(q: Quat) -> Quat:
-    """Unit quaternion with non-negative w (one representative of the rotation)."""
-    w, x, y, z = q
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    if n < 1e-12:
-        raise SimPhysicsError("zero quaternion")
-    if w < 0:
-        n = -n
-    return (w / n, x / n, y / n, z / n)
-
-
-def quat_rotate(q: Quat, v: Vec3) -> Vec3:
-    """Rotate body vector ``v`` into the world frame."""
-    w, x, y, z = q
-    vx, vy, vz = v
-    # t = 2 * cross(q.xyz, v); v' = v + w * t + cross(q.xyz, t)
-    tx = 2.0 * (y * vz - z * vy)
-    ty = 2.0 * (z * vx - x * vz)
-    tz = 2.0 * (x * vy - y * vx)
-    return (
-        vx + w * tx + (y * tz - z * ty),
-        vy + w * ty + (z * tx - x * tz),
-        vz + w * tz + (x * ty - y * tx),
-    )
-
-
-def quat_rotate_inverse(q: Quat, v: Vec3) -> Vec3:
-    """Rotate world vector ``v`` into the body frame."""
-    return quat_rotate(quat_conj(q), v)
-
-
-def quat_from_euler(roll: float, pitch: float, yaw: float) -> Quat:
-    """Quaternion of ZYX (yaw, pitch, roll) Euler angles in radians."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return (
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-    )
-
-
-def quat_to_euler(q: Quat) -> Vec3:
-    """ZYX Euler angles (roll, pitch, yaw) in radians of a unit quaternion."""
-    w, x, y, z = q
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return roll, pitch, yaw
-
-
-def quat_yaw(q: Quat) -> float:
-    """Yaw (heading) of a unit quaternion, radians in (-π, π]."""
-    w, x, y, z = q
-    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-
-
-def wrap_pi(a: float) -> float:
-    """Angle wrapped to [-π, π)."""
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-def _quat_from_dcm_columns(b1: Vec3, b2: Vec3, b3: Vec3) -> Quat:
-    """Quaternion from a rotation matrix given by its columns (body axes expressed in the world)."""
-    r00, r10, r20 = b1
-    r01, r11, r21 = b2
-    r02, r12, r22 = b3
-    tr = r00 + r11 + r22
-    if tr > 0:
-        s = math.sqrt(tr + 1.0) * 2
-        q = (0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s)
-    elif r00 > r11 and r00 > r22:
-        s = math.sqrt(1.0 + r00 - r11 - r22) * 2
-        q = ((r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s)
-    elif r11 > r22:
-        s = math.sqrt(1.0 + r11 - r00 - r22) * 2
-        q = ((r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s)
-    else:
-        s = math.sqrt(1.0 + r22 - r00 - r11) * 2
-        q = ((r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s)
-    return quat_normalize(q)
-
-
-def _clamp(v: float, lo: float, hi: float) -> float:
-    return lo if v < lo else hi if v > hi else v
 
 
 # --- parameters -------------------------------------------------------------------------------------
@@ -419,251 +337,6 @@ class Battery:
         self.soc = max(0.0, self.soc - charge_mah / p.capacity_mah)
 
 
-# --- estimator ----------------------------------------------------------------------------------
-
-
-EV_CTRL_HPOS = 1
-EV_CTRL_VPOS = 2
-EV_CTRL_VEL = 4
-EV_CTRL_YAW = 8
-
-
-class Estimator:
-    """Stand-in for EKF2: IMU prediction corrected by external vision, barometer and magnetometer.
-
-    Vision samples are fused against the estimate stored at their measurement time (``sample time −
-    EKF2_EV_DELAY``), so a wrong delay shows up as lag or overshoot like on a real vehicle. Vision is
-    used only when ``ev_ctrl`` enables it, stops 400 ms after the last sample and needs two samples
-    less than 200 ms apart to (re)start, when the estimate is reset onto the measurement.
-    """
-
-    HISTORY_S = 0.6
-    EV_TIMEOUT_S = 0.4
-    EV_START_GAP_S = 0.2
-
-    def __init__(self, rng: random.Random, position: Vec3 = (0.0, 0.0, 0.0), yaw: float = 0.0) -> None:
-        self.rng = rng
-        self.ev_ctrl = 0
-        self.ev_delay_s = 0.0
-        self.baro_enabled = True
-        self.mag_enabled = True
-        self.hgt_ref_vision = False
-        # Small constant sensor errors, different for each vehicle (seeded).
-        self.accel_bias = (rng.uniform(-0.04, 0.04), rng.uniform(-0.04, 0.04), rng.uniform(-0.06, 0.06))
-        self.gyro_z_bias = rng.uniform(-0.004, 0.004)
-        self.mag_yaw_error = rng.uniform(-0.12, 0.12)  # indoor magnetic disturbance
-        self.baro_offset = rng.uniform(-0.3, 0.3)
-        self.reset(position, yaw, 0.0)
-
-    def reset(self, position: Vec3, yaw: float, t: float) -> None:
-        """Start again from a known pose (boot)."""
-        self.position = position
-        self.velocity = (0.0, 0.0, 0.0)
-        self.bias_est = [0.0, 0.0, 0.0]  # learned accelerometer bias (NED), as EKF2's delta-velocity bias
-        # Before any heading aiding the yaw starts at zero, as EKF2 aligns it with no magnetometer.
-        self.yaw = 0.0
-        self.roll = 0.0
-        self.pitch = 0.0
-        self.time = t
-        self.history: deque[tuple[float, Vec3, Vec3, float]] = deque()
-        self.ev_active = False
-        self.ev_last_arrival = -math.inf
-        self.ev_last_fused = -math.inf
-        self.ev_reset_counter: int | None = None
-        self.ev_hpos_fused_at = -math.inf
-        self.ev_vpos_fused_at = -math.inf
-        self.ev_yaw_fused_at = -math.inf
-        self.baro_bias = 0.0
-        self.baro_bias_valid = False
-        self.yaw_aligned = False
-        self.last_sample_time = NAN
-
-    # --- validity flags (PX4 vehicle_local_position.*_valid) ---
-    @property
-    def xy_valid(self) -> bool:
-        """Horizontal position (and velocity) estimate usable for control."""
-        return self.time - self.ev_hpos_fused_at < self.EV_TIMEOUT_S
-
-    @property
-    def z_valid(self) -> bool:
-        """Height estimate usable for control (vision or barometer)."""
-        return self.time - self.ev_vpos_fused_at < self.EV_TIMEOUT_S or (
-            self.baro_enabled and self.baro_bias_valid
-        )
-
-    @property
-    def yaw_valid(self) -> bool:
-        """Heading estimate aligned with the arena (vision or magnetometer yaw)."""
-        return self.time - self.ev_yaw_fused_at < self.EV_TIMEOUT_S or (self.mag_enabled and self.yaw_aligned)
-
-    @property
-    def vision_fusing(self) -> bool:
-        """Whether external vision is being fused right now."""
-        return self.ev_active and self.time - self.ev_last_fused < self.EV_TIMEOUT_S
-
-    def predict(self, t: float, dt: float, body: RigidBody) -> None:
-        """IMU prediction for one tick, from the true motion plus sensor errors."""
-        self.time = t
-        ax, ay, az = body.acceleration
-        bx, by, bz = self.accel_bias
-        if body.on_ground:
-            # The EKF knows a vehicle at rest does not accelerate (zero-velocity update on ground).
-            vx, vy, vz = self.velocity
-            decay = 1.0 - min(1.0, 5.0 * dt)
-            self.velocity = (vx * decay, vy * decay, vz * decay)
-        else:
-            vx, vy, vz = self.velocity
-            ex, ey, ez = self.bias_est
-            self.velocity = (vx + (ax + bx - ex) * dt, vy + (ay + by - ey) * dt, vz + (az + bz - ez) * dt)
-        px, py, pz = self.position
-        vx, vy, vz = self.velocity
-        self.position = (px + vx * dt, py + vy * dt, pz + vz * dt)
-        roll, pitch, _ = quat_to_euler(body.attitude)
-        self.roll, self.pitch = roll, pitch  # IMU tilt is well observed: take it as measured
-        # Yaw from the body-rate about the vertical (gyro), with a bias.
-        wz_world = quat_rotate(body.attitude, body.rates)[2]
-        self.yaw = wrap_pi(self.yaw + (wz_world + self.gyro_z_bias) * dt)
-        if self.mag_enabled and not (self.ev_ctrl & EV_CTRL_YAW and self.vision_fusing):
-            true_yaw = quat_yaw(body.attitude)
-            mag_yaw = wrap_pi(true_yaw + self.mag_yaw_error)
-            if not self.yaw_aligned:
-                self.yaw = mag_yaw
-                self.yaw_aligned = True
-            else:
-                self.yaw = wrap_pi(self.yaw + min(1.0, 1.0 * dt) * wrap_pi(mag_yaw - self.yaw))
-        self.history.append((t, self.position, self.velocity, self.yaw))
-        while self.history and self.history[0][0] < t - self.HISTORY_S:
-            self.history.popleft()
-
-    def fuse_baro(self, dt: float, true_down: float) -> None:
-        """Barometric height: learns its offset while vision height is fused, replaces it otherwise."""
-        if not self.baro_enabled:
-            return
-        baro_down = true_down + self.baro_offset + self.rng.gauss(0.0, 0.02)
-        px, py, pz = self.position
-        if self.time - self.ev_vpos_fused_at < self.EV_TIMEOUT_S:
-            k = min(1.0, 0.5 * dt)
-            if not self.baro_bias_valid:
-                self.baro_bias = baro_down - pz
-                self.baro_bias_valid = True
-            else:
-                self.baro_bias += k * ((baro_down - pz) - self.baro_bias)
-        else:
-            if not self.baro_bias_valid:
-                self.baro_bias = baro_down - pz
-                self.baro_bias_valid = True
-            innov = (baro_down - self.baro_bias) - pz
-            vx, vy, vz = self.velocity
-            self.position = (px, py, pz + min(1.0, 3.0 * dt) * innov)
-            self.velocity = (vx, vy, vz + min(1.0, 2.0 * dt) * innov)
-
-    def _state_at(self, t: float) -> tuple[Vec3, Vec3, float] | None:
-        hist = self.history
-        if not hist or t < hist[0][0] - 1e-9:
-            return None
-        # Scan from the newest entry (delays are short, so few steps).
-        for i in range(len(hist) - 1, -1, -1):
-            entry = hist[i]
-            if entry[0] <= t + 1e-9:
-                return entry[1], entry[2], entry[3]
-        return None
-
-    def fuse_vision(
-        self,
-        arrival: float,
-        sample_time: float,
-        position: Vec3 | None,
-        yaw: float | None,
-        velocity: Vec3 | None,
-        reset_counter: int | None,
-    ) -> bool:
-        """Fuse one external-vision sample; ``sample_time`` in the vehicle clock (s). Returns fused."""
-        self.time = max(self.time, arrival)
-        self.last_sample_time = sample_time
-        if not self.ev_ctrl:
-            return False
-        prev_arrival = self.ev_last_arrival
-        self.ev_last_arrival = arrival
-        if not self.vision_fusing:
-            self.ev_active = False
-            if arrival - prev_arrival >= self.EV_START_GAP_S:
-                return False  # needs a second sample soon after the first one
-        t_meas = sample_time - self.ev_delay_s
-        if t_meas > self.time + 1e-3:
-            t_meas = self.time  # a stamp from the future is treated as now
-        starting = not self.ev_active
-        reset = starting or (reset_counter is not None and reset_counter != self.ev_reset_counter)
-        self.ev_reset_counter = reset_counter
-        past = self._state_at(t_meas)
-        if past is None:
-            return False
-        p_past, v_past, yaw_past = past
-        dt_s = _clamp(arrival - self.ev_last_fused, 0.005, 0.1)
-        px, py, pz = self.position
-        vx, vy, vz = self.velocity
-        ctrl = self.ev_ctrl
-        use_yaw = ctrl & EV_CTRL_YAW and yaw is not None and math.isfinite(yaw)
-        if use_yaw:
-            innov_yaw = wrap_pi(yaw - yaw_past)  # type: ignore[operator]
-            if reset:
-                self.yaw = wrap_pi(self.yaw + innov_yaw)
-            else:
-                self.yaw = wrap_pi(self.yaw + min(1.0, 6.0 * dt_s) * innov_yaw)
-            self.yaw_aligned = True
-            self.ev_yaw_fused_at = arrival
-        if position is not None:
-            ix = position[0] - p_past[0]
-            iy = position[1] - p_past[1]
-            iz = position[2] - p_past[2]
-            if reset:
-                # Jump the estimate onto the measurement (and its motion since the sample).
-                if ctrl & EV_CTRL_HPOS:
-                    px += ix
-                    py += iy
-                if ctrl & EV_CTRL_VPOS:
-                    pz += iz
-            else:
-                # Third-order complementary filter, poles at -2, -2, -4 rad/s.
-                kp = min(1.0, 8.0 * dt_s)
-                kv = 20.0 * dt_s
-                kb = 16.0 * dt_s
-                be = self.bias_est
-                if ctrl & EV_CTRL_HPOS:
-                    px += kp * ix
-                    py += kp * iy
-                    vx += kv * ix
-                    vy += kv * iy
-                    be[0] = _clamp(be[0] - kb * ix, -0.5, 0.5)
-                    be[1] = _clamp(be[1] - kb * iy, -0.5, 0.5)
-                if ctrl & EV_CTRL_VPOS:
-                    pz += kp * iz
-                    vz += kv * iz
-                    be[2] = _clamp(be[2] - kb * iz, -0.5, 0.5)
-            if ctrl & EV_CTRL_HPOS:
-                self.ev_hpos_fused_at = arrival
-            if ctrl & EV_CTRL_VPOS:
-                self.ev_vpos_fused_at = arrival
-        if velocity is not None and ctrl & EV_CTRL_VEL and all(math.isfinite(c) for c in velocity):
-            kv2 = min(1.0, 10.0 * dt_s)
-            vx += kv2 * (velocity[0] - v_past[0])
-            vy += kv2 * (velocity[1] - v_past[1])
-            vz += kv2 * (velocity[2] - v_past[2])
-        self.position = (px, py, pz)
-        self.velocity = (vx, vy, vz)
-        fused = bool(use_yaw or (position is not None and ctrl & (EV_CTRL_HPOS | EV_CTRL_VPOS)))
-        if fused:
-            self.ev_active = True
-            self.ev_last_fused = arrival
-            if reset:
-                self.history.clear()
-                self.history.append((self.time, self.position, self.velocity, self.yaw))
-        return fused
-
-    def attitude(self) -> Quat:
-        """Estimated attitude (IMU roll/pitch, estimated yaw)."""
-        return quat_from_euler(self.roll, self.pitch, self.yaw)
-
-
 # --- controller ---------------------------------------------------------------------------------
 
 
@@ -711,7 +384,7 @@ class Controller:
     ) -> None:
         """Position/velocity loops → attitude and thrust setpoints (``self.att_sp``, ``self.throttle_sp``)."""
         g = self.gains
-        pos, vel = est.position, est.velocity
+        pos, vel = est.out_position, est.out_velocity
         vsp = [NAN, NAN, NAN]
         kp = (g.xy_p, g.xy_p, g.z_p)
         for i in range(3):
@@ -999,7 +672,7 @@ class QuadSim:
     def want_takeoff(self) -> bool:
         """Whether the setpoint asks to leave the ground (PX4's takeoff trigger)."""
         sp = self.setpoint
-        z_est = self.estimator.position[2]
+        z_est = self.estimator.out_position[2]
         pz, vz = sp.position[2], sp.velocity[2]
         return (pz == pz and pz < z_est - 0.2) or (pz != pz and vz == vz and vz < -0.3)
 

@@ -1,0 +1,126 @@
+"""Time of the simulated autopilots: a fast-forwardable clock and PX4's TIMESYNC offset filter.
+
+:class:`SimClock` is the simulated time every vehicle of one loop shares (``speed`` times real time);
+:class:`TimesyncFilter` is PX4's estimator of the offset between a peer's clock and the vehicle's
+(src/modules/mavlink/mavlink_timesync, lib/timesync), which decides whether a vision ``time_usec`` is used
+(once converged) or replaced by its arrival time.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+from arena_common.mavlink import px4
+from arena_common.sim.base import SimAutopilotError
+
+__all__ = ["SimClock", "TimesyncFilter"]
+
+
+class SimClock:
+    """Simulated time: wall-clock driven, ``speed`` times faster than real time.
+
+    ``now_ns()`` starts at ``start_ns`` (default: the wall clock at creation, so that at speed 1 the
+    simulated time reads like ``time.time_ns()``) and advances ``speed`` ns per real ns.
+    """
+
+    def __init__(self, speed: float = 1.0, start_ns: int | None = None) -> None:
+        if not (math.isfinite(speed) and 0.01 <= speed <= 100.0):
+            raise SimAutopilotError(f"clock speed must be within 0.01..100, got {speed}")
+        self.speed = float(speed)
+        self._t0 = time.monotonic_ns()
+        self.start_ns = time.time_ns() if start_ns is None else int(start_ns)
+
+    def now_ns(self) -> int:
+        """Current simulated time in ns."""
+        return self.start_ns + int((time.monotonic_ns() - self._t0) * self.speed)
+
+    def now(self) -> float:
+        """Current simulated time in seconds."""
+        return self.now_ns() * 1e-9
+
+    def real_seconds(self, sim_seconds: float) -> float:
+        """Real (wall) seconds that ``sim_seconds`` of simulated time take."""
+        return sim_seconds / self.speed
+
+    def sleep(self, sim_seconds: float) -> None:
+        """Sleep for ``sim_seconds`` of simulated time."""
+        if sim_seconds > 0:
+            time.sleep(sim_seconds / self.speed)
+
+
+class TimesyncFilter:
+    """PX4's TIMESYNC offset estimator: double exponential smoothing with gain scheduling.
+
+    Offsets are in µs with ``local = remote + offset``. Samples with a round trip of 10 ms or more are
+    skipped; once converged (500 accepted samples), samples deviating by more than 100 ms are rejected
+    and more than 5 in a row reset the filter (a time jump on the other side).
+    """
+
+    ALPHA_INITIAL = 0.05
+    BETA_INITIAL = 0.05
+    ALPHA_FINAL = 0.003
+    BETA_FINAL = 0.003
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (reboot, time jump)."""
+        self.sequence = 0
+        self.offset_us = 0.0
+        self.skew_us = 0.0
+        self.alpha = self.ALPHA_INITIAL
+        self.beta = self.BETA_INITIAL
+        self.high_deviation_count = 0
+        self.high_rtt_count = 0
+        self.resets = 0
+        self.last_rtt_us = -1
+
+    @property
+    def converged(self) -> bool:
+        """Whether enough good samples were seen to trust the offset."""
+        return self.sequence >= px4.TIMESYNC_CONVERGENCE_WINDOW
+
+    def update(self, now_us: int, remote_us: int, originate_us: int) -> bool:
+        """Feed one reply (our receive time, the remote's ``tc1``, our echoed ``ts1``, all µs).
+
+        Returns whether the sample was accepted.
+        """
+        rtt = now_us - originate_us
+        self.last_rtt_us = rtt
+        if rtt < 0 or rtt >= px4.TIMESYNC_MAX_RTT_US:
+            self.high_rtt_count += 1
+            return False
+        offset = (originate_us + now_us - 2 * remote_us) / 2.0
+        deviation = abs(self.offset_us - offset)
+        if self.converged and deviation > px4.TIMESYNC_MAX_DEVIATION_US:
+            self.high_deviation_count += 1
+            if self.high_deviation_count > px4.TIMESYNC_MAX_CONSECUTIVE_HIGH_DEVIATION:
+                resets = self.resets + 1
+                self.reset()
+                self.resets = resets
+            return False
+        if not self.converged:
+            progress = self.sequence / px4.TIMESYNC_CONVERGENCE_WINDOW
+            p = 1.0 - math.exp(0.5 * (1.0 - 1.0 / (1.0 - progress)))
+            self.alpha = p * self.ALPHA_FINAL + (1.0 - p) * self.ALPHA_INITIAL
+            self.beta = p * self.BETA_FINAL + (1.0 - p) * self.BETA_INITIAL
+        else:
+            self.alpha, self.beta = self.ALPHA_FINAL, self.BETA_FINAL
+        if self.sequence == 0:
+            self.offset_us = offset
+        else:
+            previous = self.offset_us
+            self.offset_us = self.alpha * offset + (1.0 - self.alpha) * (self.offset_us + self.skew_us)
+            self.skew_us = self.beta * (self.offset_us - previous) + (1.0 - self.beta) * self.skew_us
+        self.sequence += 1
+        self.high_deviation_count = 0
+        self.high_rtt_count = 0
+        return True
+
+    def sync_stamp(self, remote_us: int, arrival_us: int) -> int:
+        """Local time of a remote timestamp once converged, else the arrival time (as PX4)."""
+        if self.converged:
+            return int(remote_us + self.offset_us)
+        return arrival_us
