@@ -449,7 +449,7 @@ def test_without_require_setup_the_autopilot_decides(
         assert rig.wait_state("d1", lambda s: s.link).setup_ok is False
         res = rig.cmd("d1", "arm")  # the arena's parameter check is skipped: the autopilot decides
         assert res.result == "TEMPORARILY_REJECTED", res
-        assert "Arming denied" in res.reason and "No valid position estimate" in res.reason  # its words
+        assert "No valid position estimate" in res.reason  # its own words
         assert not rig.aps["d1"].armed
     finally:
         rig.close()
