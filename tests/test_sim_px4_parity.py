@@ -18,7 +18,6 @@ from typing import Any
 import pytest
 
 from arena_common.mavlink import px4
-
 from arena_common.sim import params as sim_params
 from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimAutopilotError, SimClock
 from arena_common.sim.base import MapProjection

@@ -50,7 +50,7 @@ from arena_common.core.errors import ArenaError
 from arena_common.mavlink import px4
 
 ENV_DIR = "PX4_SITL_DIR"
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 DEFAULT_DIR = REPO.parent / "shared" / "px4-sitl"
 DEFAULT_MODEL = "sihsim_quadx"
 MAX_INSTANCE = 9  # instance 10 would send its offboard link to 14550, the ground stations' port

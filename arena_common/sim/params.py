@@ -52,8 +52,8 @@ SIM_EXTRA_DEFAULTS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "NAV_ACC_RAD": (10.0, _F),  # m, default acceptance radius of mission waypoints
 }
 
-REPO: Final = Path(__file__).resolve().parents[1]
-DATA_FILE: Final = Path(__file__).resolve().parent / "data" / "px4_reboot_required.json"
+REPO: Final = Path(__file__).resolve().parents[2]
+DATA_FILE: Final = Path(__file__).resolve().parents[1] / "data" / "px4_reboot_required.json"
 
 
 def px4_sitl_dir() -> Path:

@@ -41,7 +41,7 @@ from pymavlink import mavutil
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from arena_common.mavlink import px4# noqa: E402
+from arena_common.mavlink import px4  # noqa: E402
 from arena_common.runtime.px4_sitl import Px4Sitl  # noqa: E402
 from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock  # noqa: E402
 
