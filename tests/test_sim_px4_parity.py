@@ -132,6 +132,7 @@ def test_statustext_only_on_a_link_with_a_ground_station(vehicle: Maker) -> None
     assert gcs.statustexts == [] and len(ap.statustexts) >= 3  # said, but not to an onboard controller
     gcs.hb_type = MAV_TYPE_GCS  # a ground station appears: the texts of the last 5 s follow
     gcs.wait_for(lambda: gcs.texts_with("Resolve system health") != [], 2.0, "queued texts")
+    gcs.wait_for(lambda: any(seq == 1 for _, seq in gcs.text_ids), 2.0, "the long text's second chunk")
     assert gcs.statustexts[0] == "Preflight Fail: No valid position estimate"
     ids = [i for i, seq in gcs.text_ids if seq == 0]
     assert ids == list(range(ids[0], ids[0] + len(ids)))  # one id per text, counting up
