@@ -445,7 +445,18 @@ class Telemetry(Payload, frozen=True):
     f: Annotated[Map, _doc("Message fields by MAVLink name")] = _always({})
 
 
-_EVENT_KINDS = ("statustext", "mode", "armed", "failsafe", "command", "safety", "link", "setup", "info")
+_EVENT_KINDS = (
+    "statustext",
+    "mode",
+    "armed",
+    "failsafe",
+    "command",
+    "safety",
+    "link",
+    "setup",
+    "estimator",
+    "info",
+)
 
 
 @payload

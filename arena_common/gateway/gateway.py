@@ -495,7 +495,7 @@ class Gateway:
             vis_age=vis_age,
             vis_fused=fused,
             ofb=self.forwarder.streaming(now),
-            setup_ok=bool(self.setup.ok),
+            setup_ok=bool(self.setup.ok) and not self.setup.reboot_pending,
             fs=tuple(flags),
             tp=t,
         )

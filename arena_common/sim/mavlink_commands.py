@@ -37,6 +37,7 @@ __all__ = ["CommandsMixin"]
 NAN = math.nan
 
 MAV_CMD_NAV_RETURN_TO_LAUNCH: Final = 20
+MAV_CMD_PREFLIGHT_STORAGE: Final = 245  # param1 0: read, 1: write the parameters to permanent storage
 MAV_CMD_DO_CHANGE_SPEED: Final = 178
 MAV_CMD_DO_SET_HOME: Final = 179
 MAV_CMD_DO_REPOSITION: Final = 192
@@ -147,6 +148,9 @@ class CommandsMixin(AutopilotState):
             return R.MAV_RESULT_DENIED
         if command == R.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
             return self._cmd_reboot(p)
+        if command == MAV_CMD_PREFLIGHT_STORAGE:
+            # PX4 saves on param1 1 (its parameters persist already; so do the simulated vehicle's).
+            return R.MAV_RESULT_ACCEPTED if finite(p[0]) and int(p[0]) in (0, 1) else R.MAV_RESULT_DENIED
         if command == R.MAV_CMD_SET_MESSAGE_INTERVAL:
             msgid = as_int(p[0], 0, 0xFFFFFF)
             if msgid is None:

@@ -54,7 +54,7 @@ def test_arena_up_boots_px4_sitl_and_stops_it(tmp_path: Path, px4_pool: Instance
 
                 # A SITL's reboot: px4 exits (SITL answers MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN with DENIED, so
                 # `px4-shutdown` it is) and px4_sitl.d1 boots it again with the parameters it saved.
-                assert run_tool(n, "param", "set", "EKF2_EVP_NOISE", "0.05").returncode == 0
+                assert run_tool(n, "param", "set", "MPC_XY_CRUISE", "3.5").returncode == 0
                 assert run_tool(n, "param", "save").returncode == 0
                 run_tool(n, "shutdown")
                 wait_for(
@@ -67,8 +67,8 @@ def test_arena_up_boots_px4_sitl_and_stops_it(tmp_path: Path, px4_pool: Instance
                     what="the rebooted PX4 fusing the arena's vision again",
                 )
                 wait_for(lambda: d1.link, timeout=30, interval=0.2, what="d1: link after the reboot")
-                shown = run_tool(n, "param", "show", "EKF2_EVP_NOISE").stdout
-                assert "EKF2_EVP_NOISE" in shown and "0.0500" in shown, shown
+                shown = run_tool(n, "param", "show", "MPC_XY_CRUISE").stdout
+                assert "MPC_XY_CRUISE" in shown and "3.5000" in shown, shown
         finally:
             if up.poll() is None:
                 os.killpg(up.pid, signal.SIGINT)
