@@ -465,3 +465,25 @@ def test_statustext_chunks_are_joined_as_px4_sends_them() -> None:
     ]
     state.supervise(2.5)
     assert events.recent[-1].text == "z" * 50 and events.recent[-1].sev == 5
+
+
+def test_reboots_are_told_from_the_boot_clock() -> None:
+    """A clock back by over a second is a reboot; back at all after a silence too; a few ms of jitter not."""
+    import logging
+
+    state = VehicleState(1, EventSink(None, logging.getLogger("test")))
+    v2 = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+
+    def at(boot_ms: int, now: float) -> None:
+        state.on_local_position(v2.local_position_ned_encode(boot_ms, 0, 0, 0, 0, 0, 0), now)
+
+    at(5000, 1.0)
+    at(4990, 1.01)  # another message type, sampled 10 ms earlier
+    assert state.reboots == 0
+    at(100, 1.02)  # back 4.9 s: rebooted
+    assert state.reboots == 1
+    at(600, 1.5)
+    at(50, 2.0)  # back only 0.55 s, but after 0.5 s of silence: rebooted again, soon after the last
+    assert state.reboots == 2
+    at(40, 2.01)
+    assert state.reboots == 2

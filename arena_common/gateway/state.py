@@ -55,6 +55,7 @@ class VehicleState:
         self.volt: float | None = None
         self.battery_flag = ""
         self.boot_ms = -1
+        self._boot_seen = -math.inf  # when the last time_boot_ms arrived
         self.reboots = 0
         self.est_flags: int | None = None  # ESTIMATOR_STATUS.flags, None before the first
         self.est_time = -math.inf
@@ -111,20 +112,26 @@ class VehicleState:
             self.v = (float(msg.vx), float(msg.vy), float(msg.vz))
             self.p_time = now
             self.cond.notify_all()
-        self._boot_time(int(msg.time_boot_ms))
+        self._boot_time(int(msg.time_boot_ms), now)
 
     def on_attitude(self, msg: Any, now: float) -> None:
         q = (float(msg.q1), float(msg.q2), float(msg.q3), float(msg.q4))
         n = math.sqrt(sum(c * c for c in q))
         if n > 0.5 and math.isfinite(n):
             self.q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
-        self._boot_time(int(msg.time_boot_ms))
+        self._boot_time(int(msg.time_boot_ms), now)
 
     def on_estimator_status(self, msg: Any, now: float) -> None:
         self.est_flags, self.est_time = int(msg.flags), now
 
-    def _boot_time(self, boot_ms: int) -> None:
-        if self.boot_ms >= 0 and boot_ms + 1000 < self.boot_ms:
+    def _boot_time(self, boot_ms: int, now: float) -> None:
+        # Message types are sampled at different times, so a clock a few ms back is not a reboot; a clock
+        # back by more than a second is, and so is one back at all after the autopilot fell silent (a reboot
+        # soon after the last one: its clock has not gone far).
+        back = self.boot_ms - boot_ms
+        silent = now - self._boot_seen > 0.3
+        self._boot_seen = now
+        if self.boot_ms >= 0 and (back > 1000 or (back > 0 and silent)):
             self.reboots += 1
             self.events.emit("info", "the autopilot rebooted (its clock went back)", 5, boot_ms=boot_ms)
             for cb in self.on_reboot:
