@@ -162,85 +162,61 @@ class AutopilotState:
     COMPONENT_ID: int
     REBOOT_SECONDS: float
 
-    # --- implemented by the parts (placeholders for the type checker) ---
-    def _statustext(self, severity: int, text: str, *, tab: bool = False) -> None:
-        raise NotImplementedError
+    # --- implemented by the parts; declared here for the type checker only ---
+    if TYPE_CHECKING:
 
-    def _request_message(self, msgid: int) -> bool:
-        raise NotImplementedError
+        def _statustext(self, severity: int, text: str, *, tab: bool = False) -> None: ...
 
-    def _pos_ok(self) -> bool:
-        raise NotImplementedError
+        def _request_message(self, msgid: int) -> bool: ...
 
-    def _global_ok(self) -> bool:
-        raise NotImplementedError
+        def _pos_ok(self) -> bool: ...
 
-    def _change_mode(self, mode: tuple[int, int], t: float) -> int:
-        raise NotImplementedError
+        def _global_ok(self) -> bool: ...
 
-    def _enter_nav(self) -> None:
-        raise NotImplementedError
+        def _change_mode(self, mode: tuple[int, int], t: float) -> int: ...
 
-    def _arm_request(self, p: tuple[float, ...], t: float) -> int | None:
-        raise NotImplementedError
+        def _enter_nav(self) -> None: ...
 
-    def _terminate(self) -> None:
-        raise NotImplementedError
+        def _arm_request(self, p: tuple[float, ...], t: float) -> int | None: ...
 
-    def _set_home(self, position: Vec3) -> None:
-        raise NotImplementedError
+        def _terminate(self) -> None: ...
 
-    def _apply_params(self, boot: bool = False) -> None:
-        raise NotImplementedError
+        def _set_home(self, position: Vec3) -> None: ...
 
-    def _send_param(self, name: str) -> None:
-        raise NotImplementedError
+        def _apply_params(self, boot: bool = False) -> None: ...
 
-    def _addressed(self, target_system: int, target_component: int, allow_broadcast: bool) -> bool:
-        raise NotImplementedError
+        def _send_param(self, name: str) -> None: ...
 
-    def _offboard_stream_ok(self, t: float) -> bool:
-        raise NotImplementedError
+        def _addressed(self, target_system: int, target_component: int, allow_broadcast: bool) -> bool: ...
 
-    def _mission_valid(self) -> bool:
-        raise NotImplementedError
+        def _offboard_stream_ok(self, t: float) -> bool: ...
 
-    def _mission_start(self, t: float) -> None:
-        raise NotImplementedError
+        def _mission_valid(self) -> bool: ...
 
-    def projection(self) -> MapProjection | None:
-        raise NotImplementedError
+        def _mission_start(self, t: float) -> None: ...
 
-    def gcs_connected(self, t: float | None = None) -> bool:
-        raise NotImplementedError
+        def projection(self) -> MapProjection | None: ...
 
-    def _mission_navigate(self, t: float) -> None:
-        raise NotImplementedError
+        def gcs_connected(self, t: float | None = None) -> bool: ...
 
-    def _arm_denial(self, t: float) -> list[str]:
-        raise NotImplementedError
+        def _mission_navigate(self, t: float) -> None: ...
 
-    def _mode_unavailable(self, mode: tuple[int, int], t: float) -> str | None:
-        raise NotImplementedError
+        def _arm_denial(self, t: float) -> list[str]: ...
 
-    def _carrot(self, target: Vec3, yaw: float) -> Setpoint:
-        raise NotImplementedError
+        def _mode_unavailable(self, mode: tuple[int, int], t: float) -> str | None: ...
 
-    def _set_interval(self, msgid: int, interval_us: float, t: float) -> bool:
-        raise NotImplementedError
+        def _carrot(self, target: Vec3, yaw: float) -> Setpoint: ...
 
-    def _cmd_mission_start(self, p: tuple[float, ...], t: float) -> int:
-        raise NotImplementedError
+        def _set_interval(self, msgid: int, interval_us: float, t: float) -> bool: ...
 
-    def _mission_set_current(self, seq: int) -> bool:
-        raise NotImplementedError
+        def _cmd_mission_start(self, p: tuple[float, ...], t: float) -> int: ...
 
-    @property
-    def mode(self) -> tuple[int, int]:
-        raise NotImplementedError
+        def _mission_set_current(self, seq: int) -> bool: ...
 
-    @property
-    def landed_state(self) -> int:
-        raise NotImplementedError
+        @property
+        def mode(self) -> tuple[int, int]: ...
 
-    on_tick: Callable[[TruePose], None] | None
+        @property
+        def landed_state(self) -> int: ...
+
+        on_tick: Callable[[TruePose], None] | None
