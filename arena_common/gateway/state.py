@@ -5,10 +5,11 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 from arena_common.gateway.events import EventSink
+from arena_common.geometry.frames import quat_yaw
 from arena_common.mavlink import px4
 
 MAV_AUTOPILOT_INVALID = 8
@@ -24,12 +25,6 @@ _EST_REQUIRED = (
     (px4.ESTIMATOR_POS_HORIZ_REL, "horizontal position"),
 )
 _BATTERY_FLAGS = {2: "battery_low", 3: "battery_critical", 4: "battery_emergency", 5: "battery_failed"}
-
-
-def yaw_of(q: Sequence[float]) -> float:
-    """Yaw (rad, about Down) of a (w, x, y, z) FRD→NED quaternion."""
-    w, x, y, z = q
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 class VehicleState:
@@ -225,7 +220,7 @@ class VehicleState:
         return "estimator: no " + ", ".join(missing) if missing else None
 
     def yaw(self) -> float | None:
-        return yaw_of(self.q) if self.q is not None else None
+        return quat_yaw(self.q) if self.q is not None else None
 
     def wait(self, predicate: Callable[[], bool], deadline: float) -> bool:
         """Wait until ``predicate()`` (checked on every heartbeat or position) or the monotonic deadline."""

@@ -5,21 +5,13 @@ from __future__ import annotations
 import collections
 import math
 import time
-from collections.abc import Sequence
 
 from arena_common.core import wire
 from arena_common.core.errors import GatewayError
-from arena_common.gateway.state import yaw_of
+from arena_common.geometry.frames import quat_to_euler
 from arena_common.mavlink import px4
 from arena_common.mavlink.link import MavlinkLink
 from arena_common.runtime.service import Stats
-
-
-def _euler(q: Sequence[float]) -> tuple[float, float, float]:
-    w, x, y, z = q
-    roll = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
-    return roll, pitch, yaw_of(q)
 
 
 class VisionSender:
@@ -109,7 +101,7 @@ class VisionSender:
             )
             msg = mav.odometry_encode(**args)
         else:
-            roll, pitch, yaw = _euler(pose.q)
+            roll, pitch, yaw = quat_to_euler(pose.q)
             cov = [math.nan] + [0.0] * 20
             msg = mav.vision_position_estimate_encode(
                 usec, p[0], p[1], p[2], roll, pitch, yaw, cov, self.reset_counter

@@ -28,7 +28,6 @@ import contextlib
 import ctypes
 import ctypes.util
 import fcntl
-import json
 import math
 import os
 import re
@@ -48,6 +47,7 @@ import numpy as np
 
 from arena_common.core.errors import ArenaError
 from arena_common.mavlink import px4
+from arena_common.mavlink.metadata import MetadataError, load_parameters_json
 
 ENV_DIR = "PX4_SITL_DIR"
 REPO = Path(__file__).resolve().parents[2]
@@ -157,14 +157,10 @@ def link_tools(build: Path, dest: Path) -> Path:
 def parameter_defaults(build: Path) -> dict[str, float]:
     """Default value of every parameter of the build (its ``parameters.json``); empty when absent."""
     try:
-        data = json.loads((build / "parameters.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        meta = load_parameters_json(build / "parameters.json")
+    except MetadataError:
         return {}
-    out: dict[str, float] = {}
-    for p in data.get("parameters", ()):
-        if isinstance(p, dict) and "name" in p and isinstance(p.get("default"), (int, float)):
-            out[p["name"]] = float(p["default"])
-    return out
+    return {name: float(m["default"]) for name, m in meta.items() if m["default"] is not None}
 
 
 def sih_home(

@@ -29,6 +29,7 @@ from typing import Any, Final
 
 from arena_common.mavlink import px4
 from arena_common.mavlink.px4 import ParamValue
+from arena_common.runtime.px4_sitl import DEFAULT_DIR, ENV_DIR
 
 __all__ = [
     "DATA_FILE",
@@ -52,14 +53,14 @@ SIM_EXTRA_DEFAULTS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "NAV_ACC_RAD": (10.0, _F),  # m, default acceptance radius of mission waypoints
 }
 
-REPO: Final = Path(__file__).resolve().parents[2]
 DATA_FILE: Final = Path(__file__).resolve().parents[1] / "data" / "px4_reboot_required.json"
 
 
 def px4_sitl_dir() -> Path:
-    """Where the PX4 SITL build is looked for: ``$PX4_SITL_DIR``, else ``../shared/px4-sitl``."""
-    env = os.environ.get("PX4_SITL_DIR")
-    return Path(env) if env else REPO.parent / "shared" / "px4-sitl"
+    """Where the PX4 SITL build is looked for (as :func:`~arena_common.runtime.px4_sitl.find_build` does):
+    ``$PX4_SITL_DIR``, else ``../shared/px4-sitl``."""
+    env = os.environ.get(ENV_DIR)
+    return Path(env) if env else DEFAULT_DIR
 
 
 def load_reboot_required(path: str | os.PathLike[str]) -> frozenset[str] | None:
