@@ -113,7 +113,8 @@ def test_vision_fused_then_arm_takeoff_goto_land(px4_arena: PX4ArenaFactory) -> 
     assert hold_max < HOLD_MAX_M, (hold_p50, hold_max)
     assert abs(wrap_angle(quat_yaw(at_target.q))) < math.radians(10), at_target.q
     assert math.dist(landed.p[:2], GOTO[:2]) < HOLD_MAX_M + 0.25, landed.p  # landed below where it held
-    assert -0.05 < landed.p[2] < 0.2, landed.p  # on SIH's ground (it settles up to ~0.13 m below home)
+    # On SIH's ground: an armed SIH vehicle sinks ~4 cm/s below home until it disarms (18-28 cm measured).
+    assert -0.05 < landed.p[2] < 0.35, landed.p
     by_phase = {f.phase: f for f in figures}
     for name in ("hover", "hold"):
         f = by_phase[name]
