@@ -62,15 +62,23 @@ def test_vision_fused_then_arm_takeoff_goto_land(px4_arena: PX4ArenaFactory) -> 
     assert state.sysid == stack.cfg.vehicle("d1").system_id
 
     # On the ground, before anything moves: PX4's estimate is the true pose (position and heading).
-    record.phase("ground")
-    time.sleep(2.0)
+    # Vertically the estimate converges on the vision height after the EKF starts (measured p50 per 2 s
+    # window: 4.2, 1.7, 0.7, 0.3, 0.1 cm; CI once saw 7.6 cm in the first): windows of 2 s until one has
+    # settled to a centimetre, for at most 30 s.
+    ground = None
+    for window in range(15):
+        record.phase(f"ground-{window}")
+        time.sleep(2.0)
+        ground = record.figure(f"ground-{window}")
+        if ground.n >= 40 and ground.vertical_p50 < 0.01 and ground.vertical_max < 0.02:
+            break
+    assert ground is not None
+    print(f"\nground estimate settled after {window + 1} window(s) of 2 s: {ground}")
     truth = record.latest_truth()
     assert truth is not None and state.p is not None and state.q is not None
     assert math.dist(truth.p, (-1.0, 0.0, 0.0)) < 0.02, truth.p  # where the config put it, on the floor
-    ground = record.figure("ground")
     assert ground.n >= 40 and ground.horizontal_max < 0.05, ground
-    # Vertically the estimate settles on the vision height (measured: p50 a few cm, at most 2-11 cm).
-    assert ground.vertical_p50 < 0.05 and ground.vertical_max < 0.2, ground
+    assert ground.vertical_p50 < 0.01 and ground.vertical_max < 0.02, ground
     assert ground.yaw_max_deg < 3.0, ground
 
     record.phase("takeoff")
@@ -96,7 +104,8 @@ def test_vision_fused_then_arm_takeoff_goto_land(px4_arena: PX4ArenaFactory) -> 
     assert status["arming_state"] == 1, status
     assert is_true(px4.listener("vehicle_land_detected"), "landed")
 
-    figures = [record.figure(p) for p, _ in record.phases]
+    settling = {f"ground-{w}" for w in range(window)}  # windows before the settled one
+    figures = [record.figure(p) for p, _ in record.phases if p not in settling]
     lag, lag_err = record.lag()
     hold_p50, hold_max = record.excursion("hold", GOTO)
     assert landed is not None
