@@ -8,6 +8,13 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from arena_common.geometry.quat import (
+    quat_from_euler,
+    quat_rotate,
+    quat_rotate_inverse,
+    quat_to_euler,
+    quat_yaw,
+)
 from arena_common.sim.physics import (
     Battery,
     BatteryParams,
@@ -16,11 +23,6 @@ from arena_common.sim.physics import (
     QuadSim,
     Setpoint,
     SimPhysicsError,
-    quat_from_euler,
-    quat_rotate,
-    quat_rotate_inverse,
-    quat_to_euler,
-    quat_yaw,
 )
 
 VISION_EVERY = 5  # ticks: 50 Hz of vision at the 250 Hz physics rate

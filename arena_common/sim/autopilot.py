@@ -57,6 +57,7 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink import mavutil
 
+from arena_common.geometry.quat import quat_from_euler, quat_rotate, quat_yaw
 from arena_common.mavlink import px4
 from arena_common.mavlink.px4 import ParamValue
 from arena_common.mavlink.signing import PX4_UNSIGNED, LinkSigning, SigningKey
@@ -71,9 +72,6 @@ from arena_common.sim.physics import (
     QuadParams,
     QuadSim,
     Setpoint,
-    quat_from_euler,
-    quat_rotate,
-    quat_yaw,
 )
 from arena_common.sim.telemetry import TelemetryMixin
 from arena_common.sim.time import SimClock, TimesyncFilter

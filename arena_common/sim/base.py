@@ -29,6 +29,7 @@ __all__ = [
     "SimAutopilotError",
     "TruePose",
     "as_int",
+    "clamp",
     "finite",
 ]
 
@@ -220,3 +221,8 @@ class AutopilotState:
         def landed_state(self) -> int: ...
 
         on_tick: Callable[[TruePose], None] | None
+
+
+def clamp(v: float, lo: float, hi: float) -> float:
+    """``v`` limited to ``lo..hi``."""
+    return lo if v < lo else hi if v > hi else v

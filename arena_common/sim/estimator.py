@@ -10,16 +10,16 @@ import random
 from collections import deque
 from typing import TYPE_CHECKING
 
-from arena_common.sim.quat import (
+from arena_common.geometry.quat import (
     Quat,
     Vec3,
-    clamp,
     quat_from_euler,
     quat_rotate,
     quat_to_euler,
     quat_yaw,
-    wrap_pi,
+    wrap_angle,
 )
+from arena_common.sim.base import clamp
 
 if TYPE_CHECKING:
     from arena_common.sim.physics import RigidBody
@@ -154,16 +154,16 @@ class Estimator:
         self.roll, self.pitch = roll, pitch  # IMU tilt is well observed: take it as measured
         # Yaw from the body-rate about the vertical (gyro), with a bias.
         wz_world = quat_rotate(body.attitude, body.rates)[2]
-        self.yaw = wrap_pi(self.yaw + (wz_world + self.gyro_z_bias) * dt)
+        self.yaw = wrap_angle(self.yaw + (wz_world + self.gyro_z_bias) * dt)
         if self.mag_enabled and not (self.ev_ctrl & EV_CTRL_YAW and self.vision_fusing):
             true_yaw = quat_yaw(body.attitude)
-            mag_yaw = wrap_pi(true_yaw + self.mag_yaw_error)
+            mag_yaw = wrap_angle(true_yaw + self.mag_yaw_error)
             if not self.yaw_aligned:
                 self.yaw = mag_yaw
                 self.yaw_aligned = True
                 self.north_aligned = True
             else:
-                self.yaw = wrap_pi(self.yaw + min(1.0, 1.0 * dt) * wrap_pi(mag_yaw - self.yaw))
+                self.yaw = wrap_angle(self.yaw + min(1.0, 1.0 * dt) * wrap_angle(mag_yaw - self.yaw))
         self.history.append((t, self.position, self.velocity, self.yaw))
         while self.history and self.history[0][0] < t - self.HISTORY_S:
             self.history.popleft()
@@ -264,11 +264,11 @@ class Estimator:
         ctrl = self.ev_ctrl
         use_yaw = ctrl & EV_CTRL_YAW and yaw is not None and math.isfinite(yaw)
         if use_yaw:
-            innov_yaw = wrap_pi(yaw - yaw_past)  # type: ignore[operator]
+            innov_yaw = wrap_angle(yaw - yaw_past)  # type: ignore[operator]
             if reset:
-                self.yaw = wrap_pi(self.yaw + innov_yaw)
+                self.yaw = wrap_angle(self.yaw + innov_yaw)
             else:
-                self.yaw = wrap_pi(self.yaw + min(1.0, 6.0 * dt_s) * innov_yaw)
+                self.yaw = wrap_angle(self.yaw + min(1.0, 6.0 * dt_s) * innov_yaw)
             self.yaw_aligned = True
             if north_ref:
                 self.north_aligned = True

@@ -27,22 +27,22 @@ import math
 import random
 from dataclasses import dataclass, field
 
-from arena_common.sim.estimator import EV_CTRL_HPOS, EV_CTRL_VEL, EV_CTRL_VPOS, EV_CTRL_YAW, Estimator
-from arena_common.sim.quat import (
+from arena_common.geometry.quat import (
     Quat,
     Vec3,
-    quat_conj,
+    quat_canonical,
+    quat_conjugate,
+    quat_from_axes,
     quat_from_euler,
-    quat_mul,
+    quat_multiply,
     quat_normalize,
     quat_rotate,
     quat_rotate_inverse,
-    quat_to_euler,
     quat_yaw,
-    wrap_pi,
+    wrap_angle,
 )
-from arena_common.sim.quat import clamp as _clamp
-from arena_common.sim.quat import quat_from_dcm_columns as _quat_from_dcm_columns
+from arena_common.sim.base import clamp as _clamp
+from arena_common.sim.estimator import EV_CTRL_HPOS, EV_CTRL_VEL, EV_CTRL_VPOS, EV_CTRL_YAW, Estimator
 
 __all__ = [
     "EV_CTRL_HPOS",
@@ -62,19 +62,15 @@ __all__ = [
     "RigidBody",
     "Setpoint",
     "SimPhysicsError",
-    "quat_conj",
-    "quat_from_euler",
-    "quat_mul",
-    "quat_normalize",
-    "quat_rotate",
-    "quat_rotate_inverse",
-    "quat_to_euler",
-    "quat_yaw",
-    "wrap_pi",
 ]
 
 GRAVITY = 9.80665
 NAN = math.nan
+
+
+def _unit(q: Quat) -> Quat:
+    """``q`` normalised, the representative with ``w >= 0``."""
+    return quat_canonical(quat_normalize(q))
 
 
 class SimPhysicsError(ValueError):
@@ -274,11 +270,9 @@ class RigidBody:
     def _integrate_attitude(self, dt: float) -> None:
         wx, wy, wz = self.rates
         q = self.attitude
-        dq = quat_mul(q, (0.0, wx, wy, wz))
+        dq = quat_multiply(q, (0.0, wx, wy, wz))
         h = 0.5 * dt
-        self.attitude = quat_normalize(
-            (q[0] + dq[0] * h, q[1] + dq[1] * h, q[2] + dq[2] * h, q[3] + dq[3] * h)
-        )
+        self.attitude = _unit((q[0] + dq[0] * h, q[1] + dq[1] * h, q[2] + dq[2] * h, q[3] + dq[3] * h))
 
     def specific_force_body(self) -> Vec3:
         """What an accelerometer measures (FRD, m/s²): −g·z at rest."""
@@ -427,7 +421,7 @@ class Controller:
             yaw_sp = sp.yaw
             self.yaw_rate_ff = 0.0
         elif sp.yaw_rate == sp.yaw_rate:
-            yaw_sp = wrap_pi(yaw_now + sp.yaw_rate * self.POSITION_PERIOD)
+            yaw_sp = wrap_angle(yaw_now + sp.yaw_rate * self.POSITION_PERIOD)
             self.yaw_rate_ff = sp.yaw_rate
         else:
             yaw_sp = quat_yaw(self.att_sp) if self.throttle_sp > 0 else yaw_now
@@ -458,7 +452,7 @@ class Controller:
         n2 = math.sqrt(b2[0] ** 2 + b2[1] ** 2 + b2[2] ** 2)
         b2 = (b2[0] / n2, b2[1] / n2, b2[2] / n2)
         b1 = (b2[1] * b3[2] - b2[2] * b3[1], b2[2] * b3[0] - b2[0] * b3[2], b2[0] * b3[1] - b2[1] * b3[0])
-        self.att_sp = _quat_from_dcm_columns(b1, b2, b3)
+        self.att_sp = quat_from_axes(b1, b2, b3)
 
     def attitude_rate_control(self, q: Quat, rates: Vec3, dt: float) -> Vec3:
         """Attitude P (reduced attitude, yaw weighted) and rate PI → body torques (N m)."""
@@ -473,17 +467,17 @@ class Controller:
         cy = ez[2] * ezd[0] - ez[0] * ezd[2]
         cz = ez[0] * ezd[1] - ez[1] * ezd[0]
         if c > -0.999:
-            qr = quat_normalize((1.0 + c, cx, cy, cz))
-            qd_red = quat_mul(qr, q)
+            qr = _unit((1.0 + c, cx, cy, cz))
+            qd_red = quat_multiply(qr, q)
             # Mix in the yaw part with a weight (roll/pitch have priority).
-            q_mix = quat_mul(quat_conj(qd_red), qd)
+            q_mix = quat_multiply(quat_conjugate(qd_red), qd)
             w_mix = _clamp(q_mix[0], -1.0, 1.0)
             z_mix = _clamp(q_mix[3], -1.0, 1.0)
             yaw_w = _clamp(g.att_p[2] / g.att_p[0], 0.0, 1.0)
-            qd = quat_mul(
+            qd = quat_multiply(
                 qd_red, (math.cos(yaw_w * math.acos(w_mix)), 0.0, 0.0, math.sin(yaw_w * math.asin(z_mix)))
             )
-        qe = quat_mul(quat_conj(q), qd)
+        qe = quat_multiply(quat_conjugate(q), qd)
         sgn = 2.0 if qe[0] >= 0 else -2.0
         ex, ey, ez_ = sgn * qe[1], sgn * qe[2], sgn * qe[3]
         kp = g.att_p

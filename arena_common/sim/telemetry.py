@@ -23,9 +23,9 @@ import struct
 from collections import deque
 from typing import Final
 
+from arena_common.geometry.quat import quat_rotate_inverse, quat_to_euler
 from arena_common.mavlink import px4
 from arena_common.sim.base import AutopilotState, MapProjection
-from arena_common.sim.physics import quat_rotate_inverse, quat_to_euler
 
 __all__ = ["CAPABILITIES", "FLIGHT_SW_VERSION", "REQUESTABLE", "STREAMS", "TelemetryMixin"]
 
