@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import math
 import os
@@ -100,7 +99,7 @@ def configure(
     cfg: ArenaConfig, up_axis: str, yaw_deg: float, offset: tuple[float, float, float]
 ) -> ArenaConfig:
     return cfg.replace(
-        mocap=dataclasses.replace(cfg.mocap, up_axis=up_axis),
+        mocap=cfg.mocap.replace(up_axis=up_axis),
         calibration=CalibrationSpec(yaw_deg=yaw_deg, offset=offset),
     )
 

@@ -8,7 +8,6 @@ Everything the tests ask goes through the bus: commands on the queryable, state 
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import select
@@ -440,7 +439,7 @@ def test_without_require_setup_the_autopilot_decides(
     arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
 ) -> None:
     cfg = arena_config(speed=SPEED)
-    cfg = cfg.replace(vehicles={"d1": dataclasses.replace(cfg.vehicle("d1"), require_setup=False)})
+    cfg = cfg.replace(vehicles={"d1": cfg.vehicle("d1").replace(require_setup=False)})
     rig = Rig(cfg, bus_factory(), params=None)  # PX4 defaults: EKF2_EV_CTRL 0, vision not fused
     try:
         rig.start_gateway("d1")

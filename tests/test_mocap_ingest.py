@@ -6,7 +6,6 @@ unicast); the service runs in a thread with a stop event, and once as a real pro
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import math
 import os
@@ -238,7 +237,7 @@ def test_the_service_survives_a_bad_interface(
     service: Callable[..., threading.Event],
 ) -> None:
     cfg = make_config(tmp_path, router_endpoint, n_vehicles=1)
-    cfg = cfg.replace(mocap=dataclasses.replace(cfg.mocap, interface="192.0.2.77"))
+    cfg = cfg.replace(mocap=cfg.mocap.replace(interface="192.0.2.77"))
     bus = bus_factory()
     sub = bus.subscribe(keys.stats("test", "mocap"), capacity=100, ring=False)
     seen: dict[str, Any] = {}

@@ -9,7 +9,6 @@ gateway with the wrong key, and the gateway service as a real process.  No test 
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import pickle
@@ -89,7 +88,7 @@ def signed_config(tmp_path: Path, router_endpoint: str, key_file: str, speed: fl
 
 def with_sim_link(cfg: ArenaConfig, url: str) -> ArenaConfig:
     v = cfg.vehicle("d1")
-    return cfg.replace(vehicles={"d1": dataclasses.replace(v, sim=dataclasses.replace(v.sim, mavlink=url))})
+    return cfg.replace(vehicles={"d1": v.replace(sim=v.sim.replace(mavlink=url))})
 
 
 def encoder(sysid: int, key: SigningKey | None = None, link_id: int = 0) -> Any:

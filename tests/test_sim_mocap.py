@@ -533,7 +533,7 @@ def test_scene_latency_staleness_and_body_ids(arena_config: Callable[..., ArenaC
     # the next free id.
     cfg = arena_config(n_vehicles=3)
     vehicles = dict(cfg.vehicles)
-    vehicles["d3"] = dataclasses.replace(vehicles["d3"], rigid_body=2)
+    vehicles["d3"] = vehicles["d3"].replace(rigid_body=2)
     cfg = cfg.replace(vehicles=vehicles)
     assert sim_mocap.rigid_bodies(cfg) == [("d1", "d1", 1), ("d2", "d2", 3), ("d3", "d3", 2)]
     assert sim_mocap.rigid_bodies(cfg, ["d2"]) == [("d2", "d2", 3)]

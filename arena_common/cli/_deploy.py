@@ -149,8 +149,8 @@ def render_systemd(
                 continue  # no autopilot = "sim" vehicle: the Motive emulator runs alone
             files[f"{UNIT_DIR}/{unit}"] = fill(unit)
             wants.append(unit)
-    for service in h.vehicle_services if h.vehicles else ():
-        template = VEHICLE_UNITS[service]
+    for vservice in h.vehicle_services if h.vehicles else ():
+        template = VEHICLE_UNITS[vservice]
         files[f"{UNIT_DIR}/{template}"] = fill(template)
         wants += [template.replace("@.", f"@{v}.") for v in h.vehicles]
     if not wants:

@@ -1,9 +1,9 @@
 """The arena configuration: one TOML file describes the room, the mocap, the bus, the hosts and the vehicles.
 
-:func:`load` reads and validates a file into frozen value objects; every error names the file, the
-field and what was expected (``deploy/sim.toml: vehicles.d1.system_id: expected an integer in 1..250,
-got 0``).  ``deploy/sim.toml``, ``deploy/px4-sitl.toml`` and ``deploy/lab.example.toml`` are the documented
-examples.
+:func:`load` reads and validates a file into frozen msgspec Structs: each section is one Struct, and a
+field's type, bounds and default are written once, on the field.  Every error names the file, the field
+and what was expected (``deploy/sim.toml: vehicles.d1.system_id: expected an integer >= 1, got 0``).
+``deploy/sim.toml``, ``deploy/px4-sitl.toml`` and ``deploy/lab.example.toml`` are the documented examples.
 
 Each vehicle says what flies it (``autopilot``): ``"sim"`` (default; the arena's simulated autopilot, run
 by the host service ``sim``), ``"px4"`` (an external PX4: hardware, or a SITL started by hand; nothing is
@@ -17,34 +17,43 @@ from __future__ import annotations
 import re
 import socket
 import tomllib
-from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+import types
+import typing
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal, Self, get_args, get_origin
+
+import msgspec
+from msgspec import Meta
 
 from arena_common.core import keys
 from arena_common.core.errors import ConfigError, InvalidName
 
-SERVICES = ("router", "mocap", "transform", "recorder", "sim")
-VEHICLE_SERVICES = ("downsampler", "gateway")
-UP_AXES = ("y", "z", "enu")
-MOCAP_SOURCES = ("natnet", "motioncapture", "csv")
-ZENOH_MODES = ("peer", "client", "router")
-DECIMATE_IN = ("downsampler", "transform")
-AUTOPILOTS = ("sim", "px4", "px4-sitl")
+Service = Literal["router", "mocap", "transform", "recorder", "sim"]
+VehicleService = Literal["downsampler", "gateway"]
+ZenohMode = Literal["peer", "client", "router"]
+SERVICES: tuple[Service, ...] = get_args(Service)
+VEHICLE_SERVICES: tuple[VehicleService, ...] = get_args(VehicleService)
+ZENOH_MODES: tuple[ZenohMode, ...] = get_args(ZenohMode)
 PX4_SITL_MAX_INSTANCE = 9  # instance 10 would send its offboard link to 14550, the ground stations' port
 PX4_SITL_OFFBOARD_PORT = 14540  # + instance: where PX4 SITL sends its offboard link
 
 
-@dataclass(frozen=True, slots=True)
-class ArenaSpec:
+class Spec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A section of the config: frozen, typed, every default on its field."""
+
+    def replace(self, **changes: Any) -> Self:
+        """A copy with some fields replaced."""
+        return msgspec.structs.replace(self, **changes)
+
+
+class ArenaSpec(Spec, frozen=True):
     """The flight volume and the safety limits the gateways enforce."""
 
     name: str = "arena"
     size: tuple[float, float, float] = (7.0, 4.0, 2.5)  # north (long side), east, height, metres
-    margin: float = 0.3
-    max_speed: float = 2.0  # m/s, horizontal setpoint limit
-    max_climb: float = 1.0  # m/s, vertical setpoint limit
+    margin: Annotated[float, Meta(ge=0.0, le=5.0)] = 0.3
+    max_speed: Annotated[float, Meta(ge=0.0, le=20.0)] = 2.0  # m/s, horizontal setpoint limit
+    max_climb: Annotated[float, Meta(ge=0.0, le=10.0)] = 1.0  # m/s, vertical setpoint limit
 
     def safe_box(self) -> tuple[tuple[float, float], tuple[float, float], tuple[float, float]]:
         """(north, east, down) limits of the safe volume: the room minus the margin, origin floor centre."""
@@ -53,58 +62,54 @@ class ArenaSpec:
         return ((-n / 2 + m, n / 2 - m), (-e / 2 + m, e / 2 - m), (-(h - m), 0.0))
 
 
-@dataclass(frozen=True, slots=True)
-class CalibrationSpec:
+class CalibrationSpec(Spec, frozen=True):
     """Rotation about Down then offset, from Motive's (up-axis corrected) frame to the arena NED frame."""
 
-    yaw_deg: float = 0.0
+    yaw_deg: Annotated[float, Meta(ge=-360.0, le=360.0)] = 0.0
     offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
-@dataclass(frozen=True, slots=True)
-class MocapSpec:
+class MocapSpec(Spec, frozen=True):
     """Where poses come from."""
 
-    source: str = "natnet"
+    source: Literal["natnet", "motioncapture", "csv"] = "natnet"
     server: str = "127.0.0.1"
     interface: str = "127.0.0.1"
     multicast: bool = True
     group: str = "239.255.42.99"
-    command_port: int = 1510
-    data_port: int = 1511
-    up_axis: str = "y"
+    command_port: Annotated[int, Meta(ge=1, le=65535)] = 1510
+    data_port: Annotated[int, Meta(ge=1, le=65535)] = 1511
+    up_axis: Literal["y", "z", "enu"] = "y"
     publish_unknown: bool = False
     csv_file: str = ""
     motioncapture_type: str = "vrpn"
 
 
-@dataclass(frozen=True, slots=True)
-class ZenohSpec:
+class ZenohSpec(Spec, frozen=True):
     """How services reach each other."""
 
-    mode: str = "peer"
+    mode: ZenohMode = "peer"
     connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     listen: tuple[str, ...] = ()
     router_listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     multicast_scouting: bool = False
-    lease_ms: int = 10000
-    batching_ms: int = 1
-    extra: Mapping[str, Any] = field(default_factory=dict)
+    lease_ms: Annotated[int, Meta(ge=100, le=600000)] = 10000
+    batching_ms: Annotated[int, Meta(ge=0, le=100)] = 1
+    extra: dict[str, Any] = msgspec.field(default_factory=dict)  # raw Zenoh settings (path = value)
 
 
-@dataclass(frozen=True, slots=True)
-class HostSpec:
+class HostSpec(Spec, frozen=True):
     """One computer: what it runs."""
 
     name: str
-    services: tuple[str, ...] = ()
+    services: tuple[Service, ...] = ()
     vehicles: tuple[str, ...] = ()
-    vehicle_services: tuple[str, ...] = VEHICLE_SERVICES
+    # Default: both, or only the gateway when the transform decimates (pipeline.decimate).
+    vehicle_services: tuple[VehicleService, ...] = VEHICLE_SERVICES
     address: str = ""
 
 
-@dataclass(frozen=True, slots=True)
-class SimVehicleSpec:
+class SimVehicleSpec(Spec, frozen=True):
     """Settings of a simulated vehicle (``start`` and ``yaw_deg`` also place a PX4 SITL vehicle)."""
 
     start: tuple[float, float] = (0.0, 0.0)
@@ -112,27 +117,31 @@ class SimVehicleSpec:
     mavlink: str = ""  # the simulated autopilot's side; derived from the gateway's string when empty
 
 
-@dataclass(frozen=True, slots=True)
-class VehicleSpec:
+Px4ParamName = Annotated[str, Meta(pattern=r"^[A-Z][A-Z0-9_]{0,15}$")]
+
+
+class VehicleSpec(Spec, frozen=True):
     """One vehicle: its rigid body, its MAVLink link and its pipeline settings."""
 
     name: str
-    rigid_body: str | int
-    mavlink: str
-    system_id: int
-    vision_rate: float = 50.0
-    max_pose_age: float = 0.1
-    vision_message: str = "odometry"
+    rigid_body: str | int = ""  # the vehicle's name when empty
+    mavlink: str = ""  # a pymavlink connection string; required unless a PX4 SITL instance implies it
+    system_id: Annotated[int, Meta(ge=1, le=250)] = (
+        0  # MAV_SYS_ID, never 0; required unless a PX4 SITL instance implies it
+    )
+    vision_rate: Annotated[float, Meta(ge=1.0, le=400.0)] = 50.0
+    max_pose_age: Annotated[float, Meta(ge=0.001, le=1.0)] = 0.1
+    vision_message: Literal["odometry", "vision_position_estimate"] = "odometry"
     require_setup: bool = True
     gcs: str = ""
     signing_key_file: str = ""  # MAVLink 2 signing: a file holding the 32-byte secret key as 64 hex digits
-    sim: SimVehicleSpec = field(default_factory=SimVehicleSpec)
+    sim: SimVehicleSpec = msgspec.field(default_factory=SimVehicleSpec)
     # What flies it: "sim" (the arena's simulated autopilot, started by the ``sim`` service), "px4" (an
     # external PX4: hardware, or a SITL started by hand; nothing is started for it) or "px4-sitl" (PX4
     # SITL instance ``px4_instance``, started by ``arena up`` with its ground-truth bridge).
-    autopilot: str = "sim"
-    px4_instance: int | None = None
-    px4_params: Mapping[str, float] = field(default_factory=dict)  # PX4 SITL boot parameters
+    autopilot: Literal["sim", "px4", "px4-sitl"] = "sim"
+    px4_instance: Annotated[int, Meta(ge=0, le=PX4_SITL_MAX_INSTANCE)] | None = None
+    px4_params: dict[Px4ParamName, float] = msgspec.field(default_factory=dict)  # PX4 SITL boot parameters
 
     @property
     def simulated(self) -> bool:
@@ -151,35 +160,34 @@ class VehicleSpec:
         return mirror_connection(self.mavlink)
 
 
-@dataclass(frozen=True, slots=True)
-class SimSpec:
+class SimSpec(Spec, frozen=True):
     """The simulated world: Motive emulator and simulated vehicles."""
 
-    speed: float = 1.0
-    mocap_rate: float = 180.0
-    natnet_version: str = "3.1"
-    noise_m: float = 0.0002
-    dropout: float = 0.0
+    speed: Annotated[float, Meta(ge=0.01, le=100.0)] = 1.0
+    mocap_rate: Annotated[float, Meta(ge=1.0, le=1000.0)] = 180.0
+    natnet_version: Literal["3.0", "3.1", "4.0", "4.1"] = "3.1"
+    noise_m: Annotated[float, Meta(ge=0.0, le=0.1)] = 0.0002
+    dropout: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.0
     seed: int = 0
-    px4_params: str = "arena"  # "arena": vehicles already set up for the arena; "px4": PX4's defaults
+    px4_params: Literal["arena", "px4"] = (
+        "arena"  # "arena": vehicles set up for the arena; "px4": PX4's defaults
+    )
 
 
-@dataclass(frozen=True, slots=True)
-class RecorderSpec:
+class RecorderSpec(Spec, frozen=True):
     """The telemetry recorder."""
 
     keys: tuple[str, ...] = ("arena/**",)
     directory: str = "recordings"
-    encoding: str = "json"
-    flush_s: float = 1.0
-    split_mb: float = 512.0
-    split_s: float = 3600.0
-    min_free_mb: float = 200.0
+    encoding: Literal["json", "msgpack"] = "json"
+    flush_s: Annotated[float, Meta(ge=0.01, le=60.0)] = 1.0
+    split_mb: Annotated[float, Meta(ge=1.0, le=1e6)] = 512.0
+    split_s: Annotated[float, Meta(ge=1.0, le=1e6)] = 3600.0
+    min_free_mb: Annotated[float, Meta(ge=0.0, le=1e7)] = 200.0
     auto_on_arm: bool = False
 
 
-@dataclass(frozen=True, slots=True)
-class SecuritySpec:
+class SecuritySpec(Spec, frozen=True):
     """The ``[security]`` table of the arena config.  ``{host}`` in a path is replaced by the host name."""
 
     enabled: bool = False
@@ -194,8 +202,7 @@ class SecuritySpec:
     mtls: bool = True  # the router asks for client certificates (identity by certificate)
 
 
-@dataclass(frozen=True, slots=True)
-class PipelineSpec:
+class PipelineSpec(Spec, frozen=True):
     """Where a vehicle's full-rate poses are decimated into its vision stream.
 
     ``downsampler``: one downsampler process per vehicle (``hosts.<h>.vehicle_services``), which can run
@@ -204,24 +211,23 @@ class PipelineSpec:
     ground computer.
     """
 
-    decimate: str = "downsampler"
+    decimate: Literal["downsampler", "transform"] = "downsampler"
 
 
-@dataclass(frozen=True, slots=True)
-class ArenaConfig:
+class ArenaConfig(Spec, frozen=True):
     """A whole arena, as one TOML file describes it."""
 
-    path: str
-    arena: ArenaSpec
-    calibration: CalibrationSpec
-    mocap: MocapSpec
-    zenoh: ZenohSpec
-    hosts: Mapping[str, HostSpec]
-    vehicles: Mapping[str, VehicleSpec]
-    sim: SimSpec
-    recorder: RecorderSpec
-    security: SecuritySpec = field(default_factory=SecuritySpec)
-    pipeline: PipelineSpec = field(default_factory=PipelineSpec)
+    path: str = "<config>"
+    arena: ArenaSpec = msgspec.field(default_factory=ArenaSpec)
+    calibration: CalibrationSpec = msgspec.field(default_factory=CalibrationSpec)
+    mocap: MocapSpec = msgspec.field(default_factory=MocapSpec)
+    zenoh: ZenohSpec = msgspec.field(default_factory=ZenohSpec)
+    hosts: dict[str, HostSpec] = msgspec.field(default_factory=dict)
+    vehicles: dict[str, VehicleSpec] = msgspec.field(default_factory=dict)
+    sim: SimSpec = msgspec.field(default_factory=SimSpec)
+    recorder: RecorderSpec = msgspec.field(default_factory=RecorderSpec)
+    security: SecuritySpec = msgspec.field(default_factory=SecuritySpec)
+    pipeline: PipelineSpec = msgspec.field(default_factory=PipelineSpec)
 
     def vehicle(self, name: str) -> VehicleSpec:
         """A vehicle by name; :class:`ConfigError` listing the known names if absent."""
@@ -246,10 +252,6 @@ class ArenaConfig:
         """Rigid-body name or id → vehicle name."""
         return {v.rigid_body: v.name for v in self.vehicles.values()}
 
-    def replace(self, **changes: Any) -> ArenaConfig:
-        """A copy with some sections replaced."""
-        return replace(self, **changes)
-
 
 def mirror_connection(conn: str) -> str:
     """The other end of a pymavlink connection string: udpin↔udpout, tcp↔tcpin."""
@@ -267,347 +269,308 @@ def udp_listen_port(conn: str) -> int | None:
     return int(port) if scheme in ("udpin", "udp") and port.isdigit() else None
 
 
-class _Reader:
-    """Typed access to a TOML table that names the file and dotted field in every error."""
+# --------------------------------------------------------------------------------------------------
+# Reading: msgspec checks types, bounds and unknown fields; the rules across fields follow.
+# --------------------------------------------------------------------------------------------------
 
-    def __init__(self, path: str, data: Mapping[str, Any], prefix: str) -> None:
-        self.path, self.data, self.prefix = path, data, prefix
-        self.used: set[str] = set()
-
-    def fail(self, key: str, expected: str, got: Any = ...) -> ConfigError:
-        where = f"{self.prefix}.{key}" if self.prefix else key
-        tail = "" if got is ... else f", got {got!r}"
-        return ConfigError(f"{self.path}: {where}: expected {expected}{tail}")
-
-    def get(self, key: str, kind: type | tuple[type, ...], default: Any, expected: str) -> Any:
-        self.used.add(key)
-        if key not in self.data:
-            return default
-        value = self.data[key]
-        if isinstance(value, bool) and kind in (int, float, (int, float)):
-            raise self.fail(key, expected, value)
-        if not isinstance(value, kind):
-            raise self.fail(key, expected, value)
-        return value
-
-    def number(self, key: str, default: float, lo: float | None = None, hi: float | None = None) -> float:
-        v = float(self.get(key, (int, float), default, "a number"))
-        if (lo is not None and v < lo) or (hi is not None and v > hi):
-            raise self.fail(key, f"a number in {lo}..{hi}", v)
-        return v
-
-    def integer(self, key: str, default: int, lo: int | None = None, hi: int | None = None) -> int:
-        v = self.get(key, int, default, "an integer" if lo is None else f"an integer in {lo}..{hi}")
-        if (lo is not None and v < lo) or (hi is not None and v > hi):
-            raise self.fail(key, f"an integer in {lo}..{hi}", v)
-        return int(v)
-
-    def string(self, key: str, default: str, choices: tuple[str, ...] = ()) -> str:
-        v = self.get(key, str, default, "a string" if not choices else f"one of {', '.join(choices)}")
-        if choices and v not in choices:
-            raise self.fail(key, f"one of {', '.join(choices)}", v)
-        return str(v)
-
-    def boolean(self, key: str, default: bool) -> bool:
-        return bool(self.get(key, bool, default, "true or false"))
-
-    def strings(self, key: str, default: tuple[str, ...], choices: tuple[str, ...] = ()) -> tuple[str, ...]:
-        v = self.get(key, list, list(default), "a list of strings")
-        if not all(isinstance(x, str) for x in v):
-            raise self.fail(key, "a list of strings", v)
-        for x in v:
-            if choices and x not in choices:
-                raise self.fail(key, f"names among {', '.join(choices)}", x)
-        return tuple(v)
-
-    def vector(self, key: str, default: tuple[float, ...]) -> tuple[float, ...]:
-        n = len(default)
-        v = self.get(key, list, list(default), f"a list of {n} numbers")
-        if len(v) != n or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
-            raise self.fail(key, f"a list of {n} numbers", v)
-        return tuple(float(x) for x in v)
-
-    def table(self, key: str) -> _Reader:
-        v = self.get(key, dict, {}, "a table")
-        return _Reader(self.path, v, f"{self.prefix}.{key}" if self.prefix else key)
-
-    def done(self) -> None:
-        unknown = sorted(set(self.data) - self.used)
-        if unknown:
-            where = f"{self.prefix}." if self.prefix else ""
-            raise ConfigError(f"{self.path}: {where}{unknown[0]}: unknown field")
+_KINDS = {
+    "int": "an integer",
+    "float": "a number",
+    "str": "a string",
+    "bool": "true or false",
+    "array": "a list",
+    "object": "a table",
+}
+_AT = re.compile(r" - at (`key` in )?`\$([^`]*)`$")
 
 
-def _name(r: _Reader, key: str, value: str, what: str) -> str:
+def _fail(path: str, where: str, expected: str, got: Any = ...) -> ConfigError:
+    tail = "" if got is ... else f", got {got!r}"
+    return ConfigError(f"{path}: {where}: expected {expected}{tail}")
+
+
+def _field_type(cls: Any, names: list[str]) -> Any:
+    """The annotation (with its ``Annotated`` bounds) at a dotted path below Struct ``cls``; None if unknown."""
+    t: Any = cls
+    for name in names:
+        t = _bare(t)
+        if isinstance(t, type) and issubclass(t, msgspec.Struct):
+            t = typing.get_type_hints(t, include_extras=True).get(name)
+        elif get_origin(t) is dict:
+            t = get_args(t)[1]
+        else:
+            return None
+    return t
+
+
+def _bare(t: Any) -> Any:
+    """``t`` without ``Annotated`` and without ``| None``."""
+    while True:
+        if get_origin(t) is Annotated:
+            t = get_args(t)[0]
+        elif isinstance(t, types.UnionType) or get_origin(t) is typing.Union:
+            t = next(a for a in get_args(t) if a is not type(None))
+        else:
+            return t
+
+
+def _expected(t: Any) -> str | None:
+    """What a field of type ``t`` wants, in words (None when it cannot be said simply)."""
+    meta = next((m for m in get_args(t) if isinstance(m, Meta)), None) if get_origin(t) is Annotated else None
+    if meta is None and (isinstance(t, types.UnionType) or get_origin(t) is typing.Union):
+        return _expected(next(a for a in get_args(t) if a is not type(None)))
+    bare = _bare(t)
+    if get_origin(bare) is Literal:
+        return "one of " + ", ".join(str(a) for a in get_args(bare))
+    if get_origin(bare) is tuple:
+        args = get_args(bare)
+        if args and args[-1] is not Ellipsis and all(a is float for a in args):
+            return f"a list of {len(args)} numbers"
+        if len(args) == 2 and args[1] is Ellipsis:
+            if get_origin(args[0]) is Literal:
+                return "names among " + ", ".join(str(a) for a in get_args(args[0]))
+            return "a list of strings" if args[0] is str else None
+    kind = {
+        int: "an integer",
+        float: "a number",
+        str: "a string",
+        bool: "true or false",
+        dict: "a table",
+    }.get(get_origin(bare) or bare)
+    if kind and meta is not None and meta.ge is not None and meta.le is not None:
+        return f"{kind} in {meta.ge}..{meta.le}"
+    if kind and meta is not None and meta.pattern is not None:
+        return f"{kind} matching {meta.pattern}"
+    return kind
+
+
+def _convert(cls: type[Any], data: Any, path: str, prefix: str) -> Any:
+    """``data`` as ``cls``, or a :class:`ConfigError` naming the file, the dotted field, what was expected
+    and the value given."""
     try:
-        return keys.validate_name(value, what)
-    except InvalidName as exc:
-        raise ConfigError(f"{r.path}: {r.prefix + '.' if r.prefix else ''}{key}: {exc}") from None
-
-
-def _px4_params(r: _Reader) -> dict[str, float]:
-    table = r.get("px4_params", dict, {}, "a table of PX4 parameters (NAME = number)")
-    out: dict[str, float] = {}
-    for key, value in table.items():
-        if not re.fullmatch(r"[A-Z][A-Z0-9_]{0,15}", key):
-            raise r.fail("px4_params", "PX4 parameter names (capitals, digits, _; up to 16 characters)", key)
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise r.fail(f"px4_params.{key}", "a number", value)
-        out[key] = value
-    return out
-
-
-def _autopilot(r: _Reader) -> tuple[str, int | None, str | None, int | None]:
-    """``(autopilot, px4_instance, mavlink, system_id)``; a PX4 SITL vehicle's link and id follow from
-    its instance (and must agree with it when given)."""
-    autopilot = r.string("autopilot", "sim", AUTOPILOTS)
-    mav = r.get("mavlink", str, None, "a pymavlink connection string (udpin:HOST:PORT, tcp:…, /dev/ttyUSB0…)")
-    sysid = r.integer("system_id", 1, 1, 250) if "system_id" in r.data else None
-    if autopilot != "px4-sitl":
-        if "px4_instance" in r.data:
-            raise r.fail("px4_instance", f'no px4_instance unless autopilot = "px4-sitl" (got {autopilot!r})')
-        if "px4_params" in r.data:
-            raise r.fail("px4_params", f'no px4_params unless autopilot = "px4-sitl" (got {autopilot!r})')
-        return autopilot, None, mav, sysid
-    if "px4_instance" not in r.data:
-        raise r.fail(
-            "px4_instance",
-            f'the PX4 SITL instance number (0..{PX4_SITL_MAX_INSTANCE}) of a "px4-sitl" vehicle',
-        )
-    n = r.integer("px4_instance", 0, 0, PX4_SITL_MAX_INSTANCE)
-    port = PX4_SITL_OFFBOARD_PORT + n
-    expected = f"udpin:127.0.0.1:{port}"
-    if mav is None:
-        mav = expected
-    else:
-        scheme, _, rest = mav.partition(":")
-        host, _, port_s = rest.rpartition(":")
-        if (
-            scheme not in ("udpin", "udp")
-            or host not in ("127.0.0.1", "localhost", "0.0.0.0")
-            or port_s != str(port)
-        ):
-            raise r.fail(
-                "mavlink",
-                f"{expected} for PX4 SITL instance {n} (px4_instance; or leave mavlink out)",
-                mav,
+        return msgspec.convert(data, cls)
+    except msgspec.ValidationError as exc:
+        text = str(exc)
+        m = _AT.search(text)
+        names = [] if m is None else re.findall(r"\.([^.\[]+)", re.sub(r"\[[^\]]*\]", "", m.group(2)))
+        is_key = m is not None and m.group(1) is not None
+        text = text if m is None else text[: m.start()]
+        got: Any = data
+        for n in names:
+            got = got.get(n, ...) if isinstance(got, dict) else ...
+        if unknown := re.fullmatch(r"Object contains unknown field `(.+)`", text):
+            where = ".".join([prefix, *names, unknown.group(1)] if prefix else [*names, unknown.group(1)])
+            raise ConfigError(f"{path}: {where}: unknown field") from None
+        t = _field_type(cls, names)
+        if is_key and isinstance(got, dict):  # a table's key is wrong (e.g. a PX4 parameter name)
+            key_type = get_args(_bare(t))[0] if get_origin(_bare(t)) is dict else None
+            names_wanted = "PX4 parameter names (capitals, digits, _; up to 16 characters)"
+            if key_type is not None and key_type is not Px4ParamName:
+                names_wanted = _expected(key_type) or "valid names"
+            bad = next(
+                (k for k in got if not isinstance(k, str) or not re.fullmatch(r"[A-Z][A-Z0-9_]{0,15}", k)),
+                got,
             )
-    if sysid is None:
-        sysid = n + 1
-    elif sysid != n + 1:
-        raise r.fail(
-            "system_id", f"{n + 1}, the MAV_SYS_ID of PX4 SITL instance {n} (or leave it out)", sysid
+            raise _fail(path, ".".join([prefix, *names]), names_wanted, bad) from None
+        if (
+            m is not None and m.group(2).endswith("[...]") and isinstance(got, dict)
+        ):  # a table's value is wrong
+            value_type = get_args(_bare(t))[1] if get_origin(_bare(t)) is dict else None
+            for key, value in got.items():
+                try:
+                    msgspec.convert(value, value_type)
+                except msgspec.ValidationError:
+                    wanted = _expected(value_type) or text[:1].lower() + text[1:]
+                    raise _fail(path, ".".join([prefix, *names, str(key)]), wanted, value) from None
+        where = ".".join([prefix, *names] if prefix else names) or "(top level)"
+        expected = _expected(t) if t is not None else None
+        if expected is None:
+            kind = re.match(r"Expected `([^`]+)`(.*?)(?:, got .*)?$", text)
+            expected = text[:1].lower() + text[1:]
+            if kind is not None:
+                words = [_KINDS.get(k, k) for k in kind.group(1).split(" | ") if k != "null"]
+                expected = " or ".join(words) + kind.group(2).replace("`", "")
+        if isinstance(got, list) and expected.startswith("names among "):
+            choices = expected[len("names among ") :].split(", ")
+            got = next((g for g in got if g not in choices), got)
+        raise _fail(path, where, expected, got) from None
+
+
+def _named(path: str, section: str, data: Any) -> dict[str, Any]:
+    if not isinstance(data, dict):
+        raise _fail(path, section, "a table of named tables", data)
+    for name in data:
+        try:
+            keys.validate_name(name, f"{section[:-1]} name")
+        except InvalidName as exc:
+            raise ConfigError(f"{path}: {section}.{name}: {exc}") from None
+    return data
+
+
+def _vehicle(path: str, name: str, table: Any) -> VehicleSpec:
+    """One vehicle: a PX4 SITL vehicle's link and id follow from its instance (and must agree with it)."""
+    where = f"vehicles.{name}"
+    if not isinstance(table, dict):
+        raise _fail(path, where, "a table", table)
+    v: VehicleSpec = _convert(VehicleSpec, {"name": name, **table}, path, where)
+    fix: dict[str, Any] = {} if v.rigid_body != "" else {"rigid_body": name}
+    if v.sim.mavlink and v.autopilot != "sim":
+        raise _fail(
+            path,
+            f"{where}.sim.mavlink",
+            f'no simulated side unless autopilot = "sim" (got {v.autopilot!r})',
+            v.sim.mavlink,
         )
-    return autopilot, n, mav, sysid
-
-
-def _vehicle(r: _Reader, name: str) -> VehicleSpec:
-    body = r.get("rigid_body", (str, int), name, "a rigid-body name or integer id")
-    sim_r = r.table("sim")
-    sim = SimVehicleSpec(
-        start=sim_r.vector("start", (0.0, 0.0)),  # type: ignore[arg-type]
-        yaw_deg=sim_r.number("yaw_deg", 0.0),
-        mavlink=sim_r.string("mavlink", ""),
-    )
-    sim_r.done()
-    autopilot, instance, mav, sysid = _autopilot(r)
-    if autopilot != "sim" and sim.mavlink:
-        raise sim_r.fail(
-            "mavlink", f'no simulated side unless autopilot = "sim" (got {autopilot!r})', sim.mavlink
+    if v.autopilot != "px4-sitl":
+        for key in ("px4_instance", "px4_params"):
+            if key in table:
+                raise _fail(
+                    path, f"{where}.{key}", f'no {key} unless autopilot = "px4-sitl" (got {v.autopilot!r})'
+                )
+    else:
+        if v.px4_instance is None:
+            raise _fail(
+                path,
+                f"{where}.px4_instance",
+                f'the PX4 SITL instance number (0..{PX4_SITL_MAX_INSTANCE}) of a "px4-sitl" vehicle',
+            )
+        n = v.px4_instance
+        port = PX4_SITL_OFFBOARD_PORT + n
+        expected = f"udpin:127.0.0.1:{port}"
+        if not v.mavlink:
+            fix["mavlink"] = expected
+        else:
+            scheme, _, rest = v.mavlink.partition(":")
+            host, _, port_s = rest.rpartition(":")
+            if (
+                scheme not in ("udpin", "udp")
+                or host not in ("127.0.0.1", "localhost", "0.0.0.0")
+                or port_s != str(port)
+            ):
+                raise _fail(
+                    path,
+                    f"{where}.mavlink",
+                    f"{expected} for PX4 SITL instance {n} (px4_instance; or leave mavlink out)",
+                    v.mavlink,
+                )
+        if "system_id" not in table:
+            fix["system_id"] = n + 1
+        elif v.system_id != n + 1:
+            raise _fail(
+                path,
+                f"{where}.system_id",
+                f"{n + 1}, the MAV_SYS_ID of PX4 SITL instance {n} (or leave it out)",
+                v.system_id,
+            )
+    if not v.mavlink and "mavlink" not in fix:
+        raise _fail(
+            path,
+            f"{where}.mavlink",
+            "a pymavlink connection string (udpin:HOST:PORT, tcp:HOST:PORT, /dev/tty…)",
         )
-    if mav is None:
-        raise r.fail("mavlink", "a pymavlink connection string (udpin:HOST:PORT, tcp:HOST:PORT, /dev/tty…)")
-    if sysid is None:
-        raise r.fail("system_id", "an integer in 1..250 (MAV_SYS_ID; never 0)")
-    v = VehicleSpec(
-        name=name,
-        rigid_body=body,
-        mavlink=mav,
-        system_id=sysid,
-        vision_rate=r.number("vision_rate", 50.0, 1.0, 400.0),
-        max_pose_age=r.number("max_pose_age", 0.1, 0.001, 1.0),
-        vision_message=r.string("vision_message", "odometry", ("odometry", "vision_position_estimate")),
-        require_setup=r.boolean("require_setup", True),
-        gcs=r.string("gcs", ""),
-        signing_key_file=r.string("signing_key_file", ""),
-        sim=sim,
-        autopilot=autopilot,
-        px4_instance=instance,
-        px4_params=_px4_params(r) if autopilot == "px4-sitl" else {},
-    )
-    r.done()
-    return v
+    if "system_id" not in table and "system_id" not in fix:
+        raise _fail(path, f"{where}.system_id", "an integer in 1..250 (MAV_SYS_ID; never 0)")
+    return v.replace(**fix) if fix else v
 
 
-def parse(data: Mapping[str, Any], path: str = "<config>") -> ArenaConfig:
+_SECTIONS = {
+    "arena": ArenaSpec,
+    "calibration": CalibrationSpec,
+    "mocap": MocapSpec,
+    "zenoh": ZenohSpec,
+    "sim": SimSpec,
+    "recorder": RecorderSpec,
+    "security": SecuritySpec,
+    "pipeline": PipelineSpec,
+}
+
+
+def parse(data: dict[str, Any], path: str = "<config>") -> ArenaConfig:
     """Validate a parsed TOML document into an :class:`ArenaConfig`."""
-    root = _Reader(path, data, "")
-
-    a = root.table("arena")
-    arena = ArenaSpec(
-        name=a.string("name", "arena"),
-        size=a.vector("size", (7.0, 4.0, 2.5)),  # type: ignore[arg-type]
-        margin=a.number("margin", 0.3, 0.0, 5.0),
-        max_speed=a.number("max_speed", 2.0, 0.0, 20.0),
-        max_climb=a.number("max_climb", 1.0, 0.0, 10.0),
-    )
+    unknown = sorted(set(data) - set(_SECTIONS) - {"vehicles", "hosts"})
+    if unknown:
+        raise ConfigError(f"{path}: {unknown[0]}: unknown field")
+    sections = {name: _convert(cls, data.get(name, {}), path, name) for name, cls in _SECTIONS.items()}
+    arena: ArenaSpec = sections["arena"]
     if min(arena.size) <= 2 * arena.margin:
-        raise a.fail("size", "every dimension larger than twice the margin", list(arena.size))
-    a.done()
+        raise _fail(path, "arena.size", "every dimension larger than twice the margin", list(arena.size))
+    pipeline: PipelineSpec = sections["pipeline"]
 
-    c = root.table("calibration")
-    calibration = CalibrationSpec(
-        yaw_deg=c.number("yaw_deg", 0.0, -360.0, 360.0),
-        offset=c.vector("offset", (0.0, 0.0, 0.0)),  # type: ignore[arg-type]
-    )
-    c.done()
-
-    m = root.table("mocap")
-    mocap = MocapSpec(
-        source=m.string("source", "natnet", MOCAP_SOURCES),
-        server=m.string("server", "127.0.0.1"),
-        interface=m.string("interface", "127.0.0.1"),
-        multicast=m.boolean("multicast", True),
-        group=m.string("group", "239.255.42.99"),
-        command_port=m.integer("command_port", 1510, 1, 65535),
-        data_port=m.integer("data_port", 1511, 1, 65535),
-        up_axis=m.string("up_axis", "y", UP_AXES),
-        publish_unknown=m.boolean("publish_unknown", False),
-        csv_file=m.string("csv_file", ""),
-        motioncapture_type=m.string("motioncapture_type", "vrpn"),
-    )
-    m.done()
-
-    z = root.table("zenoh")
-    zenoh = ZenohSpec(
-        mode=z.string("mode", "peer", ZENOH_MODES),
-        connect=z.strings("connect", ("tcp/127.0.0.1:7447",)),
-        listen=z.strings("listen", ()),
-        router_listen=z.strings("router_listen", ("tcp/127.0.0.1:7447",)),
-        multicast_scouting=z.boolean("multicast_scouting", False),
-        lease_ms=z.integer("lease_ms", 10000, 100, 600000),
-        batching_ms=z.integer("batching_ms", 1, 0, 100),
-        extra=z.get("extra", dict, {}, "a table of raw Zenoh settings (path = value)"),
-    )
-    z.done()
-
-    pl = root.table("pipeline")
-    pipeline = PipelineSpec(decimate=pl.string("decimate", "downsampler", DECIMATE_IN))
-    pl.done()
-    # With the transform decimating, no host runs per-vehicle downsamplers.
-    default_vehicle_services = (
-        VEHICLE_SERVICES
-        if pipeline.decimate == "downsampler"
-        else tuple(s for s in VEHICLE_SERVICES if s != "downsampler")
-    )
-
-    vs = root.table("vehicles")
     vehicles: dict[str, VehicleSpec] = {}
     ids: dict[int, str] = {}
     instances: dict[int, str] = {}
-    for vname in list(vs.data):
-        _name(vs, vname, vname, "vehicle name")
-        v = _vehicle(vs.table(vname), vname)
+    for vname, table in _named(path, "vehicles", data.get("vehicles", {})).items():
+        v = _vehicle(path, vname, table)
         if v.px4_instance is not None:
             if v.px4_instance in instances:
-                raise vs.fail(
-                    f"{vname}.px4_instance",
+                raise _fail(
+                    path,
+                    f"vehicles.{vname}.px4_instance",
                     f"a PX4 SITL instance not used by {instances[v.px4_instance]}",
                     v.px4_instance,
                 )
             instances[v.px4_instance] = vname
         if v.system_id in ids:
-            raise vs.fail(f"{vname}.system_id", f"a system id not used by {ids[v.system_id]}", v.system_id)
+            raise _fail(
+                path,
+                f"vehicles.{vname}.system_id",
+                f"a system id not used by {ids[v.system_id]}",
+                v.system_id,
+            )
         ids[v.system_id] = vname
         vehicles[vname] = v
-    vs.done()
 
-    hs = root.table("hosts")
+    # With the transform decimating, no host runs per-vehicle downsamplers.
+    default_vehicle_services = [
+        s for s in VEHICLE_SERVICES if pipeline.decimate == "downsampler" or s != "downsampler"
+    ]
     hosts: dict[str, HostSpec] = {}
-    for hname in list(hs.data):
-        _name(hs, hname, hname, "host name")
-        h = hs.table(hname)
-        host = HostSpec(
-            name=hname,
-            services=h.strings("services", (), SERVICES),
-            vehicles=h.strings("vehicles", ()),
-            vehicle_services=h.strings("vehicle_services", default_vehicle_services, VEHICLE_SERVICES),
-            address=h.string("address", ""),
+    for hname, table in _named(path, "hosts", data.get("hosts", {})).items():
+        where = f"hosts.{hname}"
+        if not isinstance(table, dict):
+            raise _fail(path, where, "a table", table)
+        host: HostSpec = _convert(
+            HostSpec, {"name": hname, "vehicle_services": default_vehicle_services, **table}, path, where
         )
         if pipeline.decimate == "transform" and "downsampler" in host.vehicle_services:
-            raise h.fail(
-                "vehicle_services",
+            raise _fail(
+                path,
+                f"{where}.vehicle_services",
                 'no "downsampler" while pipeline.decimate = "transform" (the transform decimates)',
                 list(host.vehicle_services),
             )
         listening: dict[int, str] = {}
         for vname in host.vehicles:
             if vname not in vehicles:
-                raise h.fail(
-                    "vehicles", f"names of configured vehicles ({', '.join(vehicles) or 'none'})", vname
+                raise _fail(
+                    path,
+                    f"{where}.vehicles",
+                    f"names of configured vehicles ({', '.join(vehicles) or 'none'})",
+                    vname,
                 )
             port = udp_listen_port(vehicles[vname].mavlink)
             if port is not None and port in listening:
-                raise h.fail(
-                    "vehicles",
+                raise _fail(
+                    path,
+                    f"{where}.vehicles",
                     f"vehicles whose gateways listen on distinct UDP ports ({listening[port]} and {vname}"
                     f" both use {port} on this host)",
                     list(host.vehicles),
                 )
             if port is not None:
                 listening[port] = vname
-        h.done()
         hosts[hname] = host
-    hs.done()
 
-    s = root.table("sim")
-    sim = SimSpec(
-        speed=s.number("speed", 1.0, 0.01, 100.0),
-        mocap_rate=s.number("mocap_rate", 180.0, 1.0, 1000.0),
-        natnet_version=s.string("natnet_version", "3.1", ("3.0", "3.1", "4.0", "4.1")),
-        noise_m=s.number("noise_m", 0.0002, 0.0, 0.1),
-        dropout=s.number("dropout", 0.0, 0.0, 1.0),
-        seed=s.integer("seed", 0),
-        px4_params=s.string("px4_params", "arena", ("arena", "px4")),
-    )
-    s.done()
-
-    rr = root.table("recorder")
-    recorder = RecorderSpec(
-        keys=rr.strings("keys", ("arena/**",)),
-        directory=rr.string("directory", "recordings"),
-        encoding=rr.string("encoding", "json", ("json", "msgpack")),
-        flush_s=rr.number("flush_s", 1.0, 0.01, 60.0),
-        split_mb=rr.number("split_mb", 512.0, 1.0, 1e6),
-        split_s=rr.number("split_s", 3600.0, 1.0, 1e6),
-        min_free_mb=rr.number("min_free_mb", 200.0, 0.0, 1e7),
-        auto_on_arm=rr.boolean("auto_on_arm", False),
-    )
-    rr.done()
-
-    sc = root.table("security")
-    security = SecuritySpec(
-        enabled=sc.boolean("enabled", False),
-        users_file=sc.string("users_file", ""),
-        password_file=sc.string("password_file", ""),
-        command_hosts=sc.strings("command_hosts", ()),
-        acl=sc.boolean("acl", True),
-        tls=sc.boolean("tls", False),
-        ca=sc.string("ca", ""),
-        cert=sc.string("cert", ""),
-        key=sc.string("key", ""),
-        mtls=sc.boolean("mtls", True),
-    )
+    security: SecuritySpec = sections["security"]
     for cmd_host in security.command_hosts:
         if cmd_host not in hosts:
-            raise sc.fail(
-                "command_hosts", f"names of configured hosts ({', '.join(hosts) or 'none'})", cmd_host
+            raise _fail(
+                path,
+                "security.command_hosts",
+                f"names of configured hosts ({', '.join(hosts) or 'none'})",
+                cmd_host,
             )
-    sc.done()
-    root.done()
-    return ArenaConfig(
-        path, arena, calibration, mocap, zenoh, hosts, vehicles, sim, recorder, security, pipeline
-    )
+    return ArenaConfig(path=path, hosts=hosts, vehicles=vehicles, **sections)
 
 
 def load(path: str | Path) -> ArenaConfig:

@@ -204,9 +204,9 @@ def plan(
             for name, module in PX4_SITL_PROCESSES:
                 argv = (python, "-m", module, *common, "--vehicle", vehicle, *level)
                 specs.append(ProcessSpec(f"{name}.{vehicle}", (*argv, *_bus_args(options))))
-        for service in h.vehicle_services:
-            argv = (python, "-m", VEHICLE_PROCESSES[service], *common, "--vehicle", vehicle, *level)
-            specs.append(ProcessSpec(f"{service}.{vehicle}", (*argv, *_bus_args(options))))
+        for vservice in h.vehicle_services:
+            argv = (python, "-m", VEHICLE_PROCESSES[vservice], *common, "--vehicle", vehicle, *level)
+            specs.append(ProcessSpec(f"{vservice}.{vehicle}", (*argv, *_bus_args(options))))
     return specs
 
 
