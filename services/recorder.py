@@ -1,10 +1,12 @@
 """Telemetry recorder: every sample on ``recorder.keys`` (default ``arena/**``) into MCAP files.
 
 Samples go from Zenoh's callbacks through one bounded FIFO to this loop, which writes them (see
-:mod:`arena_common.recording.mcap`); if the disk falls behind, the FIFO drops and the drops are written into
-the file.  The file is flushed and fsynced every ``recorder.flush_s``, split by ``split_mb`` /
-``split_s``, and a new one starts per experiment: ``arena rec start NAME`` / ``arena rec stop`` query
-``arena/sys/rec/<host>`` (ops ``start`` {name}, ``stop``, ``ping``), or on arming with ``auto_on_arm``.
+:mod:`arena_common.recording.mcap`) with, beside them, the Foxglove 3D scene they make (the room from
+the config's ``[arena]``; :mod:`arena_common.recording.scene`); if the disk falls behind, the FIFO
+drops and the drops are written into the file.  The file is flushed and fsynced every
+``recorder.flush_s``, split by ``split_mb`` / ``split_s``, and a new one starts per experiment:
+``arena rec start NAME`` / ``arena rec stop`` query ``arena/sys/rec/<host>`` (ops ``start`` {name},
+``stop``, ``ping``), or on arming with ``auto_on_arm``.
 Recording starts at once into ``rec_<host>_<time>.mcap``.
 """
 
@@ -75,6 +77,7 @@ def main(
             config_path=cfg.path,
             config_text=config_text,
             on_event=on_event,
+            arena=cfg.arena,
         )
         exprs = key_exprs(cfg)
         for i, a in enumerate(exprs):

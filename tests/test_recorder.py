@@ -152,14 +152,26 @@ def test_realistic_stream_recorded_without_loss(
         summary = reader.get_summary()
         assert summary is not None
         validators = {
-            sid: jsonschema.Draft202012Validator(json.loads(s.data)) for sid, s in summary.schemas.items()
+            sid: jsonschema.Draft202012Validator(json.loads(s.data))
+            for sid, s in summary.schemas.items()
+            if s.encoding == "jsonschema"
         }
-        assert {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
-        for ch in summary.channels.values():
+        # the arena's keys in JSON, and beside them the Foxglove 3D scene in protobuf
+        assert {s.encoding for s in summary.schemas.values()} == {"jsonschema", "protobuf"}
+        scene_ids = {cid for cid, ch in summary.channels.items() if ch.metadata.get("arena_scene") == "true"}
+        assert {summary.channels[c].topic for c in scene_ids} >= {"/arena/tf", "/arena/scene/room"}
+        for cid, ch in summary.channels.items():
+            if cid in scene_ids:
+                assert ch.message_encoding == "protobuf"
+                assert summary.schemas[ch.schema_id].name.startswith("foxglove.")
+                continue
             assert (ch.schema_id == 0) == (ch.metadata["undecodable"] == "true")
             assert ch.metadata["zenoh_encoding"].startswith("application/msgpack;arena.")
-        n_json = 0
+        n_json = n_scene = 0
         for schema, channel, message in reader.iter_messages():
+            if channel.id in scene_ids:
+                n_scene += 1
+                continue
             if schema is None:
                 assert channel.topic in ("arena/d2/pose", "arena/d3/state")
                 continue
@@ -169,7 +181,7 @@ def test_realistic_stream_recorded_without_loss(
             if channel.topic == "arena/d1/pose":
                 t = doc["t"]["sec"] * 10**9 + doc["t"]["nsec"]
                 assert message.publish_time == t and message.log_time >= t  # publish = tp, log = receipt
-        assert n_json == ri.messages - 6
+        assert n_scene > 0 and n_json == ri.messages - 6 - n_scene
 
 
 def test_kill_9_keeps_everything_before_the_last_flush(
@@ -374,9 +386,9 @@ def test_recorder_splits_by_size_and_duration_and_records_drops(tmp_path: Path) 
     assert len(names) == 3 and names[1].endswith("_p2.mcap") and names[2].endswith("_p3.mcap")
     infos = [recording.info(p) for p in rec.files]
     assert all(ri.complete for ri in infos)
-    assert infos[0].size >= 1_000_000 and sum(ri.messages for ri in infos) == 701
+    assert infos[0].size >= 1_000_000 and sum(sum(ri.counts_by_key().values()) for ri in infos) == 701
     assert infos[1].dropped == 7 and infos[0].dropped == 0
     assert any("7 samples dropped" in t for t, _ in events)
     assert [ri.meta["part"] for ri in infos] == ["1", "2", "3"]
-    ch = infos[0].channels[0]
+    ch = next(c for c in infos[0].channels if not c.scene)
     assert ch.encoding == "msgpack" and ch.schema == "arena.Event"

@@ -27,6 +27,7 @@ GROUPS = (
     "_demo",
     "_px4",
     "_rec",
+    "_view",
     "_deploy",
 )
 

@@ -31,6 +31,10 @@ from arena_common.runtime.options import ConfigOpt, config_path, load_config
 from arena_common.runtime.supervisor import child_setup
 
 console = Console()
+WATCH_3D = (
+    "watch in 3D: `arena view` in another terminal, then Foxglove → Open connection → "
+    "ws://127.0.0.1:8765 with the layout deploy/foxglove/arena.json (docs/viewer.md)"
+)
 
 
 def formation_flight(
@@ -145,7 +149,7 @@ def demo(
 
     def view() -> Group:
         snap.refresh()
-        return Group(snap.render(), Text.from_markup("\n".join(say[-6:])))
+        return Group(snap.render(), Text.from_markup("\n".join(say[-6:])), Text(WATCH_3D, style="dim"))
 
     try:
         with Live(view(), console=console, refresh_per_second=2) as live:

@@ -1,0 +1,70 @@
+"""``arena view``: the live 3D scene for Foxglove, from any computer on the bus."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from arena_common.recording.live import DEFAULT_PORT, LiveView, serve
+from arena_common.runtime.options import (
+    ConfigOpt,
+    ConnectOpt,
+    HostOpt,
+    ListenOpt,
+    LogOpt,
+    ModeOpt,
+    ZConfigOpt,
+    bus_options,
+    load_config,
+)
+from arena_common.runtime.service import setup_logging
+
+
+def view_cmd(
+    port: Annotated[
+        int, typer.Option("--port", "-p", help="WebSocket port (0: any free port).")
+    ] = DEFAULT_PORT,
+    address: Annotated[
+        str,
+        typer.Option("--address", help="Address to listen on (0.0.0.0: let other computers connect)."),
+    ] = "127.0.0.1",
+    key_exprs: Annotated[
+        list[str] | None, typer.Option("--keys", "-k", help="Keys to show (repeatable; default arena/**).")
+    ] = None,
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+    host: HostOpt = None,
+    log_level: LogOpt = "WARNING",
+) -> None:
+    """Serve the arena live in 3D over the Foxglove WebSocket protocol (open ws://ADDRESS:PORT in Foxglove)."""
+    setup_logging(log_level)
+    cfg = load_config(config, required=False)
+
+    def ready(view: LiveView) -> None:
+        typer.echo(
+            f"live 3D view on ws://{address}:{view.port} — in Foxglove: Open connection → Foxglove WebSocket, "
+            f"then import the layout deploy/foxglove/arena.json (docs/viewer.md). Ctrl-C stops."
+        )
+
+    try:
+        serve(
+            cfg,
+            bus_options(mode, connect, listen, zconfig),
+            address=address,
+            port=port,
+            key_exprs=key_exprs or ["arena/**"],
+            host=host,
+            on_ready=ready,
+        )
+    except RuntimeError as exc:  # the SDK's server cannot listen (port taken, bad address)
+        typer.echo(f"error: cannot serve on {address}:{port}: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``view`` to ``app``."""
+    app.command("view")(view_cmd)
