@@ -27,9 +27,11 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
-from arena_common.core.errors import ArenaError
+from arena_common.core import waiting
+from arena_common.core.errors import ArenaError, WaitTimeout
+from arena_common.runtime.process import ChildProcess
 
 __all__ = [
     "BenchError",
@@ -215,7 +217,7 @@ class Child:
 
     name: str
     role: str  # what it stands for: router, emulator, ingest, transform, downsampler, gateway, floor…
-    proc: subprocess.Popen[bytes]
+    proc: ChildProcess
     log: Path
     cpu_mark: int | None = None
     mark_t: float = 0.0
@@ -249,21 +251,11 @@ class ProcessSet:
         """Start ``argv`` (output to ``<logs>/<name>.log``)."""
         self.logs.mkdir(parents=True, exist_ok=True)
         log = self.logs / f"{name}.log"
-        out: IO[bytes] = open(log, "wb")  # noqa: SIM115 - handed to the child, closed right after
+        log.write_bytes(b"")
         try:
-            proc = subprocess.Popen(
-                list(argv),
-                cwd=cwd,
-                env=dict(self.env) if self.env is not None else None,
-                stdout=out,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                start_new_session=True,
-            )
+            proc = ChildProcess(argv, name=name, cwd=cwd, env=self.env, log=log, death_signal=None)
         except OSError as exc:
             raise BenchError(f"cannot start {name} ({argv[0]}): {exc}") from None
-        finally:
-            out.close()
         child = Child(name, role, proc, log)
         self.children.append(child)
         return child
@@ -306,14 +298,14 @@ class ProcessSet:
         for c in targets:
             if c.alive:
                 with contextlib.suppress(ProcessLookupError):
-                    c.proc.send_signal(signal.SIGTERM)
+                    c.proc.send_signal(signal.SIGTERM, group=False)
         deadline = time.monotonic() + grace
         for c in targets:
             try:
                 c.proc.wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 with contextlib.suppress(ProcessLookupError):
-                    c.proc.kill()
+                    c.proc.send_signal(signal.SIGKILL, group=False)
                 with contextlib.suppress(subprocess.TimeoutExpired):
                     c.proc.wait(5.0)
         for c in targets:
@@ -333,14 +325,13 @@ def python_module(module: str, *args: str) -> list[str]:
 
 
 def wait_until(predicate: Any, timeout: float, what: str, procs: ProcessSet | None = None) -> None:
-    """Poll ``predicate`` (bounded) until true; :class:`BenchError` naming ``what`` after ``timeout``."""
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if procs is not None:
-            procs.check_alive()
-        if time.monotonic() > deadline:
-            raise BenchError(f"timed out after {timeout:.0f} s waiting for {what}")
-        time.sleep(0.05)
+    """The library's :func:`~arena_common.core.waiting.wait_until`, checking that ``procs`` still run;
+    :class:`BenchError` naming ``what`` after ``timeout``."""
+    check = procs.check_alive if procs is not None else None
+    try:
+        waiting.wait_until(predicate, timeout, what, interval=0.05, check=check)
+    except WaitTimeout as exc:
+        raise BenchError(str(exc)) from None
 
 
 def wait_port(port: int, timeout: float, what: str, procs: ProcessSet | None = None) -> None:

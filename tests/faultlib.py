@@ -8,8 +8,8 @@ The pieces (every port private to the caller, every address 127.0.0.1):
   what reaches each autopilot (every ODOMETRY, SET_POSITION_TARGET_LOCAL_NED and COMMAND_LONG, checked)
   and how it flies, whatever happens to the arena's processes; :meth:`World.occlude` hides a body from
   the Motive emulator the way Motive streams an occluded body (tracking bit clear);
-- :class:`Proc` — one child process (output in a log file) and :class:`ArenaUp` — ``arena up`` (the
-  supervisor) whose children's pids are read from its output;
+- :class:`ArenaUp` — ``arena up`` (the supervisor) as a :class:`~tests.conftest.Proc` (a child
+  process started the library's way, output in a log file) whose children's pids are read from its output;
 - :class:`Watch` — what the bus says: states, events, stats of every service;
 - :class:`LossyLink` — a UDP relay that drops and delays datagrams, a bad radio link in user space;
 - :func:`record` — collected figures, written to ``bench-results/faults.json`` and printed.
@@ -27,15 +27,13 @@ import re
 import select
 import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 os.environ.setdefault("MAVLINK20", "1")
 
@@ -44,9 +42,8 @@ from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig, ArenaSpec, ZenohSpec
 from arena_common.mavlink import px4
 from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock, TruePose
-from tests.conftest import REPO, free_port, wait_for
+from tests.conftest import PYTHON, REPO, Proc, free_port, wait_for
 
-PYTHON = sys.executable
 RESULTS_DIR = REPO / "bench-results"
 ARENA_PARAMS: dict[str, Any] = {name: value for name, (value, _) in px4.ARENA_REQUIRED_PARAMS.items()}
 WATCHED = ("ODOMETRY", "SET_POSITION_TARGET_LOCAL_NED", "COMMAND_LONG")
@@ -415,79 +412,6 @@ def rss_bytes(pid: int) -> int:
         return 0
 
 
-class Proc:
-    """One child process, its output (stdout and stderr) collected into ``lines`` and a log file."""
-
-    def __init__(
-        self, name: str, argv: Sequence[str], log_dir: Path, env: dict[str, str] | None = None
-    ) -> None:
-        self.name = name
-        self.argv = list(argv)
-        self.log_path = log_dir / f"{name}.log"
-        self.lines: list[str] = []
-        self._log: IO[str] = self.log_path.open("a")
-        self.proc = subprocess.Popen(
-            self.argv,
-            cwd=REPO,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
-            start_new_session=True,
-        )
-        self._reader = threading.Thread(target=self._pump, name=f"log:{name}", daemon=True)
-        self._reader.start()
-
-    def _pump(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self.lines.append(line)
-            self.on_line(line)
-            try:
-                self._log.write(line)
-                self._log.flush()
-            except ValueError:
-                pass
-
-    def on_line(self, line: str) -> None:
-        """Called for every line of output (subclasses parse them)."""
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    @property
-    def running(self) -> bool:
-        return self.proc.poll() is None
-
-    def signal(self, sig: int) -> None:
-        """Send ``sig`` to the process itself (not its group)."""
-        if self.running:
-            os.kill(self.proc.pid, sig)
-
-    def stop(self, timeout: float = 15.0) -> int | None:
-        """SIGINT, then SIGKILL after ``timeout``; the exit code."""
-        if self.running:
-            self.signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10.0)
-        self._reader.join(5.0)
-        self._log.close()
-        return self.proc.returncode
-
-    def tail(self, n: int = 30) -> str:
-        return "".join(self.lines[-n:])
-
-
-def service_argv(module: str, cfg_path: Path, *extra: str) -> list[str]:
-    """The command line of one service (``services.<module>``) on ``cfg_path`` as host ``test``."""
-    return [PYTHON, "-m", f"services.{module}", "-c", str(cfg_path), "--host", "test", *extra]
-
-
 _STARTED = re.compile(r"^\[arena\] (?:re)?started (\S+) \(pid (\d+)")
 
 
@@ -534,8 +458,9 @@ class ArenaUp(Proc):
         wait_for(lambda: self.pids.get(name, old_pid) != old_pid, timeout, 0.02, what=f"{name} restarted")
         return self.pids[name], self.started_at[name]
 
-    def stop(self, timeout: float = 25.0) -> int | None:
-        code = super().stop(timeout)
+    def stop(self, timeout: float = 25.0, sig: int = signal.SIGINT) -> int | None:
+        """Stop the supervisor (``sig``, SIGKILL after ``timeout``), then any child it left behind."""
+        code = super().stop(timeout, sig)
         for pid in self.every_pid:  # children die with the supervisor; make sure of it
             if alive(pid):
                 try:

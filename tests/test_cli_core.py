@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import json
-import os
-import queue
-import subprocess
-import sys
-import threading
+import signal
+from collections.abc import Callable
 from pathlib import Path
 
 from typer.testing import CliRunner
@@ -16,7 +13,7 @@ from arena_common.bus.session import open_bus
 from arena_common.cli import app
 from arena_common.core import keys, wire
 from arena_common.core.config import ZenohSpec
-from tests.conftest import REPO, free_port, wait_for
+from tests.conftest import PYTHON, REPO, Proc, free_port, wait_for
 
 runner = CliRunner()
 
@@ -39,27 +36,14 @@ def test_config_check_ok_and_errors(tmp_path: Path) -> None:
     assert f"{bad}: vehicles.d1.system_id: expected an integer" in res.output
 
 
-def _lines(proc: subprocess.Popen[str], q: queue.Queue[str]) -> None:
-    assert proc.stdout is not None
-    for line in proc.stdout:
-        q.put(line)
-
-
-def test_router_and_echo_across_processes() -> None:
+def test_router_and_echo_across_processes(processes: Callable[..., Proc]) -> None:
     """`arena router`, then `arena echo 'arena/**' --json` prints a pose published by another process."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    env = {**os.environ, "ARENA_CONFIG": "/nonexistent"}
-    arena = [sys.executable, "-m", "arena_common.cli"]
-    router = subprocess.Popen([*arena, "router", "--listen", endpoint], env=env, stderr=subprocess.DEVNULL)
-    echo = subprocess.Popen(
-        [*arena, "echo", "arena/**", "--json", "-e", endpoint],
-        env=env,
-        text=True,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-    )
-    lines: queue.Queue[str] = queue.Queue()
-    threading.Thread(target=_lines, args=(echo, lines), daemon=True).start()
+    env = {"ARENA_CONFIG": "/nonexistent"}
+    arena = [PYTHON, "-m", "arena_common.cli"]
+    router = processes("router", [*arena, "router", "--listen", endpoint], env=env)
+    echo = processes("echo", [*arena, "echo", "arena/**", "--json", "-e", endpoint], env=env)
+    read = 0
     bus = open_bus(ZenohSpec(mode="peer", connect=(endpoint,)))
     try:
         pub = bus.stream_publisher(keys.pose("d1"), wire.Pose)
@@ -67,11 +51,11 @@ def test_router_and_echo_across_processes() -> None:
         seen: list[dict] = []
 
         def echoed(fn: int) -> bool:
+            nonlocal read
             pub.put(pose.replace(fn=fn))
-            while not lines.empty():
-                line = lines.get()
-                if line.startswith("{"):
-                    seen.append(json.loads(line))
+            lines = echo.lines[read:]
+            read += len(lines)
+            seen.extend(json.loads(line) for line in lines if line.startswith("{"))
             return any(s.get("payload", {}).get("fn") == fn for s in seen)
 
         wait_for(lambda: echoed(1), timeout=15, interval=0.1, what="echo of the pose")
@@ -83,14 +67,11 @@ def test_router_and_echo_across_processes() -> None:
         wait_for(lambda: echoed(2), timeout=10, interval=0.1, what="echo still running after bad payload")
         errors = [s for s in seen if "error" in s]
         assert errors and errors[0]["key"] == "arena/d1/pose" and "expected a map" in errors[0]["error"]
-        assert echo.poll() is None
+        assert echo.running
     finally:
         bus.close()
-        for p in (echo, router):
-            p.terminate()
-        for p in (echo, router):
-            p.wait(10)
-    assert echo.returncode == 0
+        codes = [p.stop(10.0, signal.SIGTERM) for p in (echo, router)]
+    assert codes[0] == 0, echo.tail()
     # The router stops on SIGTERM; on a loaded machine it was once seen ending by the signal itself (-15)
     # instead of its handler: either way it is gone.
-    assert router.returncode in (0, -15)
+    assert codes[1] in (0, -15), router.tail()

@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import itertools
-import os
+import signal
 import statistics
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,7 +19,7 @@ from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.pipeline.vision import VELOCITY_SETTLE_S, Outcome, VisionFilter
 from services import downsampler
-from tests.conftest import REPO, wait_for, write_config
+from tests.conftest import Proc, service_argv, wait_for, write_config
 from tests.test_frame_transform import service_thread
 
 T0 = 1_700_000_000_000_000_000
@@ -183,20 +181,13 @@ def test_unknown_vehicle_is_a_clear_error(tmp_path: Path, router_endpoint: str) 
 
 
 def test_runs_as_a_process_at_its_rate(
-    tmp_path: Path, router_endpoint: str, bus_factory: Callable[[], Bus]
+    tmp_path: Path, router_endpoint: str, bus_factory: Callable[[], Bus], processes: Callable[..., Proc]
 ) -> None:
     path = write_config(tmp_path, router_endpoint)
     bus = bus_factory()
     pub = bus.stream_publisher(keys.pose("d1"), wire.Pose)
     vision = bus.subscribe(keys.vision("d1"), capacity=1000, ring=False)
-    cmd = [sys.executable, "-m", "services.downsampler", "--vehicle", "d1", "--rate", "20"]
-    proc = subprocess.Popen(
-        [*cmd, "--config", str(path), "--host", "test"],
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
+    proc = processes("downsampler", service_argv("downsampler", path, "--vehicle", "d1", "--rate", "20"))
     got: list[wire.Pose] = []
     i = 0
 
@@ -211,10 +202,9 @@ def test_runs_as_a_process_at_its_rate(
         wait_for(step, timeout=20, interval=0.02, what="first vision pose")
         first = i
         wait_for(lambda: step() and i - first >= 100, timeout=20, interval=0.005, what="a second of input")
-        assert proc.poll() is None
+        assert proc.running
     finally:
-        proc.terminate()
-        _, err = proc.communicate(timeout=15)
-    assert proc.returncode == 0, err.decode()
+        code = proc.stop(sig=signal.SIGTERM)
+    assert code == 0, proc.tail()
     spacing = {b.t - a.t for a, b in itertools.pairwise(got)}
     assert spacing == {50_000_000}  # exactly every fifth 100 Hz sample at 20 Hz

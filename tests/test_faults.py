@@ -38,12 +38,10 @@ from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import BusError
 from arena_common.recording.mcap import RecordingReader
-from tests.conftest import REPO, free_port, wait_for
+from tests.conftest import PYTHON, REPO, Proc, free_port, service_argv, wait_for
 from tests.faultlib import (
-    PYTHON,
     ArenaUp,
     LossyLink,
-    Proc,
     TapAutopilot,
     Watch,
     World,
@@ -54,7 +52,6 @@ from tests.faultlib import (
     peer_bus,
     rate_between,
     record,
-    service_argv,
     wait_time,
     write_arena_config,
 )
@@ -369,7 +366,7 @@ def test_motive_restart_ingest_recovers(rig: Rig) -> None:
     fly(rig)
     t0 = time.monotonic()
     rig.mocap.signal(signal.SIGKILL)
-    rig.mocap.proc.wait(10.0)
+    rig.mocap.wait(10.0)
     rig.mocap.stop()
     to_land, _ = landed_by_itself(rig, t0)
     time.sleep(max(0.0, 1.0 - (time.monotonic() - t0)))

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
-import subprocess
-import sys
+import signal
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -20,7 +18,7 @@ from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig, CalibrationSpec
 from arena_common.geometry.frames import quat_angle, quat_from_axis_angle, quat_from_euler
 from services import frame_transform
-from tests.conftest import REPO, wait_for, write_config
+from tests.conftest import Proc, service_argv, wait_for, write_config
 
 T0 = 1_700_000_000_000_000_000
 DT = 5_555_556  # 180 Hz
@@ -216,26 +214,21 @@ def test_bad_payloads_are_counted_and_the_service_lives(
     assert snap.counts["invalid"] >= 1  # the warm-up samples
 
 
-def test_runs_as_a_process(tmp_path: Path, router_endpoint: str, bus_factory: Callable[[], Bus]) -> None:
+def test_runs_as_a_process(
+    tmp_path: Path, router_endpoint: str, bus_factory: Callable[[], Bus], processes: Callable[..., Proc]
+) -> None:
     path = write_config(
         tmp_path, router_endpoint, extra="[calibration]\nyaw_deg = -90.0\noffset = [1.0, 0, 0]"
     )
     link = Link(bus_factory())
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.frame_transform", "--config", str(path), "--host", "test"],
-        cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
+    proc = processes("transform", service_argv("frame_transform", path))
     try:
         link.warm_up()
         pose = link.exchange([mocap(7, (1.0, 2.0, 3.0), (1.0, 0.0, 0.0, 0.0))])[0]
-        assert proc.poll() is None
+        assert proc.running
     finally:
-        proc.terminate()
-        _, err = proc.communicate(timeout=15)
-    assert proc.returncode == 0, err.decode()
+        code = proc.stop(sig=signal.SIGTERM)
+    assert code == 0, proc.tail()
     # Y-up (1, 2, 3) → NED (1, 3, −2) → −90° about Down: (3, −1, −2) → + (1, 0, 0)
     assert pose.p == pytest.approx((4.0, -1.0, -2.0), abs=1e-9)
     assert quat_angle(pose.q, quat_from_euler(0.0, 0.0, math.radians(-90.0))) < 1e-9

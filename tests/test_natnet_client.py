@@ -496,7 +496,7 @@ def test_lost_server_reconnects_with_back_off(fake_motive: Callable[..., FakeMot
         server.answer_connect = False  # the server goes quiet
         lost_at = time.monotonic()
         poll_until(client, lambda: "no_data" in rejects.reasons(), what="the loss noticed")
-        assert time.monotonic() - lost_at < 1.0
+        assert 0.3 <= time.monotonic() - lost_at < 3.0  # after loss_timeout, not long after (a busy machine)
         poll_until(
             client,
             lambda: len([t for t in server.times(MessageId.CONNECT) if t > lost_at]) >= 4,
@@ -504,8 +504,10 @@ def test_lost_server_reconnects_with_back_off(fake_motive: Callable[..., FakeMot
         )
         retries = [t for t in server.times(MessageId.CONNECT) if t > lost_at]
         gaps = [b - a for a, b in itertools.pairwise(retries)]
-        assert gaps[0] == pytest.approx(0.1, abs=0.08)  # the first retry after ``retry``…
-        assert max(gaps) == pytest.approx(0.4, abs=0.15)  # …then doubling up to ``max_backoff``
+        # The first retry after ``retry``, then doubling up to ``max_backoff``: each wait at least its back-off
+        # (0.1, 0.2, 0.4, 0.4 s; a busy machine can only add to them), none far beyond the maximum.
+        assert all(g >= want - 0.02 for g, want in zip(gaps, (0.1, 0.2, 0.4, 0.4), strict=False)), gaps
+        assert max(gaps) < 0.4 + 1.0, gaps
         server.answer_connect = True
         poll_until(client, lambda: client.version is not None, what="the new session")
         assert len(stream_until(server, client, 2)) == 2

@@ -13,6 +13,7 @@ import logging
 import os
 import pickle
 import select
+import signal
 import socket
 import stat
 import subprocess
@@ -57,7 +58,7 @@ from arena_common.mavlink.signing import (
 from arena_common.runtime.service import running
 from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock
 from services.sim_vehicle import build_autopilots
-from tests.conftest import REPO, free_port, wait_for, write_config
+from tests.conftest import REPO, Proc, free_port, service_argv, wait_for, write_config
 
 SPEED = 2.0
 ARENA_PARAMS: dict[str, Any] = {name: value for name, (value, _) in px4.ARENA_REQUIRED_PARAMS.items()}
@@ -702,53 +703,30 @@ def test_a_gateway_with_the_wrong_key_drops_everything(
 
 
 def test_gateway_service_process_signs_and_never_logs_the_key(
-    tmp_path: Path, router_endpoint: str, bus_factory: Callable[[], Bus]
+    tmp_path: Path, router_endpoint: str, bus_factory: Callable[[], Bus], processes: Callable[..., Proc]
 ) -> None:
     key = generate_key_file(tmp_path / "d1.key")
     cfg = signed_config(tmp_path, router_endpoint, "d1.key")
     ap = build_autopilots(cfg, SimClock(SPEED))[0]
     loop = AutopilotLoop([ap]).start()
     bus = bus_factory()
-    log_path = tmp_path / "gateway.log"
-    with log_path.open("w") as log:
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "services.mavlink_gateway",
-                "--vehicle",
-                "d1",
-                "-c",
-                cfg.path,
-                "--log-level",
-                "DEBUG",
-                "--origin",
-                "-33.86,151.21,5",
-            ],
-            cwd=REPO,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-        )
-        try:
+    argv = service_argv("mavlink_gateway", cfg.path, "--vehicle", "d1", "--log-level", "DEBUG", host=None)
+    proc = processes("gateway", [*argv, "--origin", "-33.86,151.21,5"])
+    try:
 
-            def request(op: str) -> wire.CommandResult:
-                return bus.request(keys.cmd("d1"), wire.Command(op=op, src="test", timeout=5.0))
+        def request(op: str) -> wire.CommandResult:
+            return bus.request(keys.cmd("d1"), wire.Command(op=op, src="test", timeout=5.0))
 
-            wait_for(lambda: request("ping").ok, 60.0, what="the gateway process answers")
-            wait_for(lambda: request("check").ok, 30.0, what="parameters read over the signed link")
-            wait_for(lambda: ap.gps_origin is not None, 10.0, what="origin")
-            assert ap.gps_origin == pytest.approx((-33.86, 151.21, 5.0), abs=1e-6)
-            assert ap.signing is not None and ap.signing.accepted > 10 and not ap.refused
-        finally:
-            proc.terminate()
-            try:
-                proc.wait(10.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(10.0)
-            loop.stop()
-            ap.close()
-    text = log_path.read_text()
+        wait_for(lambda: request("ping").ok, 60.0, what="the gateway process answers")
+        wait_for(lambda: request("check").ok, 30.0, what="parameters read over the signed link")
+        wait_for(lambda: ap.gps_origin is not None, 10.0, what="origin")
+        assert ap.gps_origin == pytest.approx((-33.86, 151.21, 5.0), abs=1e-6)
+        assert ap.signing is not None and ap.signing.accepted > 10 and not ap.refused
+    finally:
+        proc.stop(10.0, signal.SIGTERM)
+        loop.stop()
+        ap.close()
+    text = proc.output()
     assert f"MAVLink 2 signing with key {key.fingerprint}" in text
     assert_secret_free(text, key)
 

@@ -109,11 +109,13 @@ def test_truth_published_for_every_vehicle(
         assert last.ok and last.vok
         assert last.p == pytest.approx((north, east, 0.0), abs=1e-9)  # resting on the floor at its start
         assert last.q == pytest.approx((1.0, 0.0, 0.0, 0.0), abs=1e-9)
-        # One pose per physics tick: intervals of one tick (more only where a sample was dropped).
+        # One pose per physics tick, in order: every interval a whole number of ticks (more than one only
+        # where a busy machine made the simulation skip time or a sample was dropped), and one tick apart
+        # wherever two consecutive ticks arrived.  How many were skipped depends on the load, not asserted.
         intervals = [b.t - a.t for a, b in itertools.pairwise(poses)]
         tick_ns = 1e9 / sim_vehicle.PHYSICS_RATE
         assert all(i > 0 and abs(i / tick_ns - round(i / tick_ns)) < 1e-3 for i in intervals)
-        assert sorted(intervals)[len(intervals) // 2] == pytest.approx(tick_ns, abs=1e3)
+        assert min(intervals) == pytest.approx(tick_ns, abs=1e3)
     # Presence: the service's liveliness token (bounded retries while it propagates through the router).
     token = keys.alive("simhost", "sim_vehicle")
     assert any(token in bus.alive("arena/sys/alive/**") for _ in range(5))

@@ -8,15 +8,13 @@ from __future__ import annotations
 
 import importlib.util
 import os
-import queue
 import re
 import signal
-import subprocess
 import sys
 import textwrap
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -38,7 +36,7 @@ from arena_common.runtime.supervisor import (
     plan,
     sim_world_plan,
 )
-from tests.conftest import REPO, free_port, wait_for, write_config
+from tests.conftest import PYTHON, REPO, Proc, free_port, wait_for, write_config
 
 runner = CliRunner()
 
@@ -327,40 +325,29 @@ DRIVER = textwrap.dedent(
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux only")
-def test_children_die_with_a_killed_supervisor(worker: Path, tmp_path: Path) -> None:
+def test_children_die_with_a_killed_supervisor(
+    worker: Path, tmp_path: Path, processes: Callable[..., Proc]
+) -> None:
     """SIGKILL of the supervisor: the kernel kills each child, even one that ignores SIGTERM."""
     driver = tmp_path / "driver.py"
     driver.write_text(DRIVER)
-    proc = subprocess.Popen(
-        [sys.executable, str(driver), str(worker)],
-        cwd=REPO,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    lines: queue.Queue[str] = queue.Queue()
-
-    def pump() -> None:
-        for line in proc.stdout or ():
-            lines.put(line)
-
-    threading.Thread(target=pump, daemon=True).start()
+    proc = processes("driver", [PYTHON, str(driver), str(worker)])
     pids: dict[str, int] = {}
     try:
 
         def both_started() -> bool:
-            while not lines.empty():
-                m = re.match(r"\[arena\] started (\w+) \(pid (\d+)\)", lines.get())
+            for line in list(proc.lines):
+                m = re.match(r"\[arena\] started (\w+) \(pid (\d+)\)", line)
                 if m:
                     pids[m[1]] = int(m[2])
             return len(pids) == 2
 
         wait_for(both_started, timeout=30, what="the driver's two children")
-        proc.kill()
+        proc.signal(signal.SIGKILL)
         proc.wait(timeout=10)
         wait_for(lambda: all(gone(p) for p in pids.values()), timeout=10, what="children to die with it")
     finally:
-        proc.kill()
+        proc.signal(signal.SIGKILL)
         for pid in pids.values():
             try:
                 os.kill(pid, signal.SIGKILL)
@@ -384,7 +371,9 @@ def _missing_services() -> list[str]:
 
 @pytest.mark.system
 @pytest.mark.skipif(bool(_missing_services()), reason=f"services not written yet: {_missing_services()}")
-def test_arena_up_runs_restarts_and_stops_the_real_services(tmp_path: Path) -> None:
+def test_arena_up_runs_restarts_and_stops_the_real_services(
+    tmp_path: Path, processes: Callable[..., Proc]
+) -> None:
     """`arena up` on a private config: the chain flows, kill -9 of each child is repaired, Ctrl-C ends all."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     path = write_config(tmp_path, endpoint, n_vehicles=1)
@@ -393,22 +382,17 @@ def test_arena_up_runs_restarts_and_stops_the_real_services(tmp_path: Path) -> N
     )
     path.write_text(text)
     expected = {"router", "sim_vehicle", "sim_mocap", "mocap", "transform", "downsampler.d1", "gateway.d1"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "arena_common.cli", "up", str(path), "--host", "test"],
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    out = Lines()
-    reader = threading.Thread(target=lambda: [out.write(x) for x in proc.stdout or ()], daemon=True)
-    reader.start()
+    proc = processes("arena-up", [PYTHON, "-m", "arena_common.cli", "up", str(path), "--host", "test"])
+
+    def grep(pattern: str) -> list[str]:
+        return [line for line in (x.rstrip("\n") for x in list(proc.lines)) if re.search(pattern, line)]
+
     bus = open_bus(ZenohSpec(mode="peer", connect=(endpoint,)))
     every_pid: set[int] = set()
 
     def pids() -> dict[str, int]:
         found: dict[str, int] = {}
-        for line in out.grep(r"^\[arena\] (re)?started "):
+        for line in grep(r"^\[arena\] (re)?started "):
             m = re.match(r"\[arena\] (?:re)?started (\S+) \(pid (\d+)", line)
             if m:
                 found[m[1]] = int(m[2])
@@ -447,7 +431,7 @@ def test_arena_up_runs_restarts_and_stops_the_real_services(tmp_path: Path) -> N
             what="every child restarted with a new pid",
         )
         for name in expected:
-            assert out.grep(rf"^\[arena\] {re.escape(name)} \(pid {first[name]}\) killed by SIGKILL"), name
+            assert grep(rf"^\[arena\] {re.escape(name)} \(pid {first[name]}\) killed by SIGKILL"), name
         wait_for(lambda: flowing(t_kill), timeout=90, interval=0.05, what="the chain flowing again")
 
         def restarts_published() -> bool:
@@ -456,17 +440,12 @@ def test_arena_up_runs_restarts_and_stops_the_real_services(tmp_path: Path) -> N
 
         wait_for(restarts_published, timeout=10, what="the supervisor's stats counting the restarts")
 
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=40) == 0
-        reader.join(timeout=5)
+        assert proc.stop(40.0) == 0, proc.tail()  # SIGINT, as Ctrl-C
         survivors = [p for p in every_pid if not gone(p)]
         assert not survivors, f"children left behind: {survivors}"
-        assert out.grep(r"^\[arena\] all stopped$")
+        assert grep(r"^\[arena\] all stopped$")
     finally:
         bus.close()
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
         for pid in every_pid:
             try:
                 os.kill(pid, signal.SIGKILL)
@@ -477,17 +456,13 @@ def test_arena_up_runs_restarts_and_stops_the_real_services(tmp_path: Path) -> N
 @pytest.mark.skipif(
     importlib.util.find_spec("services.sim_mocap") is None, reason="services.sim_mocap not written yet"
 )
-def test_sim_world_runs_both_parts_and_stops(tmp_path: Path, router_endpoint: str) -> None:
+def test_sim_world_runs_both_parts_and_stops(
+    tmp_path: Path, router_endpoint: str, processes: Callable[..., Proc]
+) -> None:
     """`arena sim world CONFIG`: simulated vehicles and Motive emulator, supervised; Ctrl-C ends both."""
     path = write_config(tmp_path, router_endpoint, n_vehicles=1)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "arena_common.cli", "sim", "world", str(path), "--host", "test"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    out = Lines()
-    threading.Thread(target=lambda: [out.write(x) for x in proc.stdout or ()], daemon=True).start()
+    argv = [PYTHON, "-m", "arena_common.cli", "sim", "world", str(path), "--host", "test"]
+    proc = processes("sim-world", argv)
     bus = open_bus(ZenohSpec(mode="peer", connect=(router_endpoint,)))
     pids: list[int] = []
     try:
@@ -503,18 +478,12 @@ def test_sim_world_runs_both_parts_and_stops(tmp_path: Path, router_endpoint: st
             timeout=30,
             what="both parts' presence",
         )
-        pids = [
-            int(p) for p in re.findall(r"^\[arena\] started \S+ \(pid (\d+)\)", "\n".join(out.lines), re.M)
-        ]
+        pids = [int(p) for p in re.findall(r"^\[arena\] started \S+ \(pid (\d+)\)", proc.output(), re.M)]
         assert len(pids) == 2
-        proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=30) == 0
+        assert proc.stop(30.0) == 0, proc.tail()  # SIGINT, as Ctrl-C
         assert all(gone(p) for p in pids)
     finally:
         bus.close()
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(timeout=10)
         for pid in pids:
             try:
                 os.kill(pid, signal.SIGKILL)

@@ -65,3 +65,12 @@ class VehicleNotPresent(CommandError):
 
 class GatewayError(ArenaError, ValueError):
     """A gateway part configured with a value it cannot use (an origin out of range, an unknown message)."""
+
+
+class WaitTimeout(ArenaError, TimeoutError):
+    """A bounded wait ran out before its condition held; ``what`` names the condition."""
+
+    def __init__(self, message: str, *, what: str = "", timeout: float = 0.0) -> None:
+        self.what = what
+        self.timeout = timeout
+        super().__init__(message)

@@ -130,8 +130,11 @@ class GlobalOrigin:
         msg = self.link.mav.set_gps_global_origin_encode(
             self.target, lat_e7, lon_e7, alt_mm, wire.now_ns() // 1000
         )
-        if self.link.send(msg):
-            self.sent += 1
+        # Counted before the send: the autopilot's answer may be handled (by the link's thread) before send
+        # returns, and must then be taken for the answer to ours, not for an origin of its own.
+        self.sent += 1
+        if not self.link.send(msg):
+            self.sent -= 1
 
     def on_gps_global_origin(self, msg: Any, now: float) -> None:
         """The autopilot's origin (GPS_GLOBAL_ORIGIN): kept when it had one, else confirms ours."""

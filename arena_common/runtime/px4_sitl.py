@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import ctypes
-import ctypes.util
 import fcntl
 import math
 import os
@@ -48,6 +46,7 @@ import numpy as np
 from arena_common.core.errors import ArenaError
 from arena_common.mavlink import px4
 from arena_common.mavlink.metadata import MetadataError, load_parameters_json
+from arena_common.runtime.process import child_setup
 
 ENV_DIR = "PX4_SITL_DIR"
 REPO = Path(__file__).resolve().parents[2]
@@ -58,7 +57,6 @@ READY_LINES = ("Startup script returned successfully", "Ready for takeoff")
 LOCK_FILE = "/tmp/px4_lock-{n}"  # PX4 holds a POSIX record lock on it while instance n runs
 #: SIH's home when no parameter moves it (this build's parameters.json defaults).
 SIH_HOME_DEFAULT = (47.397742, 8.545594, 489.4)
-_PR_SET_PDEATHSIG = 1
 
 ListenerValue = bool | int | float | str | list[float]
 
@@ -279,24 +277,6 @@ def parse_listener(text: str) -> list[dict[str, ListenerValue]]:
 # -- the instance --------------------------------------------------------------------------------------
 
 
-def _load_prctl() -> Callable[..., int] | None:
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        prctl: Callable[..., int] = libc.prctl
-    except (OSError, AttributeError):
-        return None
-    return prctl
-
-
-_prctl = _load_prctl()
-
-
-def _die_with_parent() -> None:
-    # Between fork and exec: SIGKILL when the parent (the process that started PX4) dies.
-    if _prctl is not None:
-        _prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-
-
 def param_text(value: float | int | str) -> str:
     """A boot parameter's value as ``param set`` takes it (integers without a decimal point)."""
     if isinstance(value, bool):
@@ -418,7 +398,7 @@ class Px4Sitl:
                     stdin=subprocess.DEVNULL,
                     stdout=subprocess.PIPE,
                     stderr=subprocess.STDOUT,
-                    preexec_fn=_die_with_parent,
+                    preexec_fn=child_setup(os.getpid(), signal.SIGKILL),  # dies with us
                     close_fds=True,
                 )
             except OSError as exc:
@@ -457,6 +437,9 @@ class Px4Sitl:
                 + self.tail()
             )
         if self.boot_s is None or (not self.alive and self.proc.poll() is not None):
+            # Its output ended: it exits; its status may take a moment to be there to reap.
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self.proc.wait(5.0)
             raise Px4SitlError(
                 f"PX4 SITL instance {self.instance} exited with status {self.proc.poll()} while starting;"
                 f" last lines:\n{self.tail()}"

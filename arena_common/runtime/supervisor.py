@@ -15,7 +15,8 @@ minute).  Children never outlive the supervisor: each one asks the kernel for SI
 dies (``PR_SET_PDEATHSIG``, Linux), so even a ``kill -9`` of the supervisor stops them (an orderly stop
 sends SIGTERM first); each child also runs in its own process group, which is what the supervisor
 signals, so a child's own children go too, and a Ctrl-C on the terminal reaches the supervisor alone,
-which then stops the children in order.
+which then stops the children in order.  Each child is a :class:`~arena_common.runtime.process.ChildProcess`,
+the one way the arena starts, watches and stops a process.
 
 ``PR_SET_PDEATHSIG`` fires when the *thread* that forked the child ends, so spawn from a thread that
 lives as long as the children (``arena up`` spawns from its main thread).
@@ -23,8 +24,6 @@ lives as long as the children (``arena up`` spawns from its main thread).
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import os
 import shlex
 import signal
@@ -36,11 +35,12 @@ import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import IO, Any, Protocol
+from typing import Any, Protocol
 
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig, HostSpec
 from arena_common.core.errors import ArenaError
+from arena_common.runtime.process import ChildProcess, describe_exit
 
 # Config service name → (process name, module) pairs; "sim" is the simulated world: the simulated
 # autopilots of the ``autopilot = "sim"`` vehicles (none: not started) and the Motive emulator.
@@ -62,7 +62,6 @@ PX4_SITL_PROCESSES: tuple[tuple[str, str], ...] = (
 )
 ROUTER_MODULE = "arena_common.cli"
 SUPERVISOR_SERVICE = "supervisor"
-_PR_SET_PDEATHSIG = 1
 _COLOURS = ("36", "32", "33", "35", "34", "91", "92", "93", "95", "96")
 
 
@@ -240,48 +239,7 @@ def _service_processes(cfg: ArenaConfig, service: str) -> tuple[tuple[str, str],
     return processes
 
 
-# -- child process plumbing ------------------------------------------------------------------------------
-
-
-def _load_prctl() -> Callable[..., int] | None:
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        prctl: Callable[..., int] = libc.prctl
-    except (OSError, AttributeError):
-        return None
-    return prctl
-
-
-# Resolved once, before any fork: the child side must not load libraries.
-_prctl = _load_prctl()
-
-
-def child_setup(parent_pid: int, death_signal: int) -> Callable[[], None]:
-    """A ``preexec_fn`` that has the child sent ``death_signal`` when ``parent_pid`` (this thread) dies."""
-
-    def setup() -> None:
-        # Runs in the child between fork and exec: ask for ``death_signal`` when the parent dies, and
-        # handle the race where it died before this line ran.
-        if _prctl is not None:
-            _prctl(_PR_SET_PDEATHSIG, death_signal, 0, 0, 0)
-        if os.getppid() != parent_pid:
-            os.kill(os.getpid(), death_signal)
-
-    return setup
-
-
-def _signal_name(code: int) -> str:
-    try:
-        return signal.Signals(-code).name
-    except ValueError:
-        return f"signal {-code}"
-
-
-def describe_exit(code: int) -> str:
-    """``exited with status 1`` or ``killed by SIGKILL``."""
-    return f"killed by {_signal_name(code)}" if code < 0 else f"exited with status {code}"
+# -- supervising ---------------------------------------------------------------------------------------
 
 
 class _Output:
@@ -314,8 +272,7 @@ class _Output:
 class _Child:
     def __init__(self, spec: ProcessSpec) -> None:
         self.spec = spec
-        self.proc: subprocess.Popen[bytes] | None = None
-        self.reader: threading.Thread | None = None
+        self.proc: ChildProcess | None = None
         self.started = 0.0
         self.restarts = 0
         self.failures = 0
@@ -324,7 +281,7 @@ class _Child:
 
     @property
     def alive(self) -> bool:
-        return self.proc is not None and self.proc.poll() is None
+        return self.proc is not None and self.proc.alive
 
 
 class Supervisor:
@@ -415,15 +372,12 @@ class Supervisor:
     def _spawn(self, child: _Child) -> bool:
         spec = child.spec
         try:
-            proc = subprocess.Popen(
+            proc = ChildProcess(
                 spec.argv,
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
+                name=spec.name,
                 env={**self.env, **spec.env},
-                start_new_session=True,
-                preexec_fn=child_setup(os.getpid(), self.death_signal),
-                close_fds=True,
+                on_line=lambda text: self.output.line(spec.name, text),
+                death_signal=self.death_signal,
             )
         except OSError as exc:
             self.say(f"{spec.name}: cannot start {spec.argv[0]}: {exc.strerror or exc}")
@@ -433,19 +387,8 @@ class Supervisor:
         child.proc = proc
         child.started = time.monotonic()
         child.next_start = None
-        reader = threading.Thread(target=self._pump, args=(spec.name, proc.stdout), daemon=True)
-        reader.name = f"log:{spec.name}"
-        reader.start()
-        child.reader = reader
         self._event("started", spec.name, str(proc.pid))
         return True
-
-    def _pump(self, name: str, stream: IO[bytes] | None) -> None:
-        if stream is None:
-            return
-        with stream:
-            for raw in iter(stream.readline, b""):
-                self.output.line(name, raw.decode("utf-8", errors="replace"))
 
     def _wait_ready(self, child: _Child, stop: threading.Event | None) -> None:
         address = child.spec.ready_port
@@ -525,13 +468,7 @@ class Supervisor:
 
     # -- stopping -------------------------------------------------------------------------------------
     def _signal(self, child: _Child, sig: int) -> None:
-        if child.proc is None or child.proc.poll() is not None:
-            return
-        try:
-            os.killpg(child.proc.pid, sig)
-        except ProcessLookupError:
-            pass
-        except PermissionError:
+        if child.proc is not None:
             child.proc.send_signal(sig)
 
     def _stop_group(self, group: Iterable[_Child]) -> None:
@@ -563,8 +500,8 @@ class Supervisor:
         self._stop_group(reversed(others))
         self._stop_group(routers)
         for child in self.children:
-            if child.reader is not None:
-                child.reader.join(timeout=2.0)
+            if child.proc is not None:
+                child.proc.join_output(timeout=2.0)
         self.say("all stopped")
 
 

@@ -1,0 +1,187 @@
+"""Starting, watching and stopping one OS process: the one way the arena, its tools and its tests do it.
+
+:class:`ChildProcess` starts a program in a process group of its own, has the kernel kill it when the
+thread that started it dies (``PR_SET_PDEATHSIG``, Linux), hands each line of its output to a callback,
+and stops it with a signal and then SIGKILL after a grace period.  The :mod:`supervisor
+<arena_common.runtime.supervisor>` behind ``arena up`` runs each of its children as one;
+:func:`child_setup` is the ``preexec_fn`` for a ``subprocess.Popen`` that needs other plumbing (a log
+file for stdout, a terminal).
+
+``PR_SET_PDEATHSIG`` fires when the *thread* that forked the child ends, so start children from a thread
+that lives as long as they do.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+
+_PR_SET_PDEATHSIG = 1
+
+
+def _load_prctl() -> Callable[..., int] | None:
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        prctl: Callable[..., int] = libc.prctl
+    except (OSError, AttributeError):
+        return None
+    return prctl
+
+
+# Resolved once, before any fork: the child side must not load libraries.
+_prctl = _load_prctl()
+
+
+def child_setup(parent_pid: int, death_signal: int) -> Callable[[], None]:
+    """A ``preexec_fn`` that has the child sent ``death_signal`` when ``parent_pid`` (this thread) dies."""
+
+    def setup() -> None:
+        # Runs in the child between fork and exec: ask for ``death_signal`` when the parent dies, and
+        # handle the race where it died before this line ran.
+        if _prctl is not None:
+            _prctl(_PR_SET_PDEATHSIG, death_signal, 0, 0, 0)
+        if os.getppid() != parent_pid:
+            os.kill(os.getpid(), death_signal)
+
+    return setup
+
+
+def _signal_name(code: int) -> str:
+    try:
+        return signal.Signals(-code).name
+    except ValueError:
+        return f"signal {-code}"
+
+
+def describe_exit(code: int) -> str:
+    """``exited with status 1`` or ``killed by SIGKILL``."""
+    return f"killed by {_signal_name(code)}" if code < 0 else f"exited with status {code}"
+
+
+class ChildProcess:
+    """One OS process started the arena's way; the :class:`Supervisor` runs each of its children as one.
+
+    The child runs in a process group of its own (a terminal's Ctrl-C reaches the parent alone, and a
+    signal to the group reaches the child's own children), is sent ``death_signal`` by the kernel when
+    the thread that started it dies (``None``: not), and has its output (stdout and stderr together)
+    read line by line by a thread that hands each decoded line, newline included, to ``on_line`` — or,
+    with ``log``, appended by the child itself to that file (no thread in this process: what a
+    measurement wants)::
+
+        child = ChildProcess(["python", "-m", "services.downsampler", ...], on_line=print)
+        ...
+        code = child.stop(grace=5.0)   # SIGTERM to its group, SIGKILL after the grace period
+
+    Raises :class:`OSError` when the program cannot be started.
+    """
+
+    def __init__(
+        self,
+        argv: Sequence[str],
+        *,
+        name: str = "",
+        env: Mapping[str, str] | None = None,
+        cwd: str | Path | None = None,
+        on_line: Callable[[str], None] | None = None,
+        log: str | Path | None = None,
+        death_signal: int | None = signal.SIGKILL,
+    ) -> None:
+        if log is not None and on_line is not None:
+            raise ValueError("a child's output goes to on_line or to a log file, not both")
+        self.name = name or Path(argv[0]).name
+        self.argv = tuple(argv)
+        self._on_line = on_line
+        out = open(log, "ab") if log is not None else None  # noqa: SIM115 - the child's, closed below
+        try:
+            self.popen: subprocess.Popen[bytes] = subprocess.Popen(
+                self.argv,
+                cwd=cwd,
+                stdin=subprocess.DEVNULL,
+                stdout=out if out is not None else subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                env=dict(os.environ if env is None else env),
+                start_new_session=True,
+                preexec_fn=None if death_signal is None else child_setup(os.getpid(), death_signal),
+                close_fds=True,
+            )
+        finally:
+            if out is not None:
+                out.close()
+        self._reader = threading.Thread(target=self._pump, name=f"log:{self.name}", daemon=True)
+        self._reader.start()
+
+    def _pump(self) -> None:
+        stream = self.popen.stdout
+        if stream is None:
+            return
+        with stream:
+            for raw in iter(stream.readline, b""):
+                if self._on_line is not None:
+                    self._on_line(raw.decode("utf-8", errors="replace"))
+
+    @property
+    def pid(self) -> int:
+        """The child's process id (also its process group id)."""
+        return self.popen.pid
+
+    @property
+    def alive(self) -> bool:
+        """True until the child has exited (and was reaped)."""
+        return self.popen.poll() is None
+
+    @property
+    def returncode(self) -> int | None:
+        """The exit status (negative: killed by that signal), ``None`` while it runs."""
+        return self.popen.poll()
+
+    def poll(self) -> int | None:
+        """Reap the child if it exited: its exit status, else ``None``."""
+        return self.popen.poll()
+
+    def wait(self, timeout: float | None = None) -> int:
+        """Wait for the child to exit; its status.  :class:`subprocess.TimeoutExpired` after ``timeout``."""
+        return self.popen.wait(timeout)
+
+    def send_signal(self, sig: int, *, group: bool = True) -> None:
+        """Send ``sig`` to the child's process group (``group=False``: to the child alone); a no-op once
+        it has exited."""
+        if self.popen.poll() is not None:
+            return
+        try:
+            if group:
+                os.killpg(self.popen.pid, sig)
+            else:
+                os.kill(self.popen.pid, sig)
+        except ProcessLookupError:
+            pass
+        except PermissionError:
+            self.popen.send_signal(sig)
+
+    def stop(self, grace: float = 5.0, sig: int = signal.SIGTERM) -> int | None:
+        """Send ``sig`` (to the group), SIGKILL after ``grace`` seconds; the exit status (``None`` if even
+        SIGKILL did not end it within 5 s).  Waits for the last of its output to be handed on."""
+        if self.alive:
+            self.send_signal(sig)
+            try:
+                self.popen.wait(grace)
+            except subprocess.TimeoutExpired:
+                self.send_signal(signal.SIGKILL)
+                try:
+                    self.popen.wait(5.0)
+                except subprocess.TimeoutExpired:
+                    return None
+        self.join_output(5.0)
+        return self.popen.returncode
+
+    def join_output(self, timeout: float | None = None) -> None:
+        """Wait (at most ``timeout``) until every line the child wrote has been handed to ``on_line``."""
+        self._reader.join(timeout)
