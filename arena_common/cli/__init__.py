@@ -1,7 +1,7 @@
 """The ``arena`` command: one entry point for every tool, each group in its own module.
 
-Each module ``arena_common/cli/_<group>.py`` defines ``register(app)``; the ones present are loaded in
-the order of :data:`GROUPS`.
+Each module ``arena_common/cli/_<group>.py`` defines ``register(app)``, loaded in the order of
+:data:`GROUPS`.  The options every command shares are declared once, in :mod:`._globals`.
 """
 
 from __future__ import annotations
@@ -10,9 +10,11 @@ import importlib
 
 import typer
 
+from arena_common.cli import _globals
+
 app = typer.Typer(
     name="arena",
-    help="Flying Arena: motion capture to PX4 vehicles over Zenoh, in the lab or in simulation.",
+    cls=_globals.Group,
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
@@ -31,6 +33,7 @@ GROUPS = (
     "_deploy",
 )
 
+app.callback()(_globals.options)  # --config, --mode, --connect, --listen, --zconfig: declared once
 for _name in GROUPS:
     importlib.import_module(f"{__name__}.{_name}").register(app)
 

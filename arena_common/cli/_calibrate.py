@@ -37,6 +37,9 @@ from typing import Annotated, TextIO
 import typer
 
 from arena_common.bus.session import Subscription, open_bus
+from arena_common.cli._globals import bus as global_bus
+from arena_common.cli._globals import config as global_config
+from arena_common.cli._globals import config_file as global_config_file
 from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.errors import ArenaError, ConfigError, InvalidName
@@ -49,16 +52,6 @@ from arena_common.geometry.frames import (
     calibration_residuals,
     motive_to_ned,
     solve_calibration,
-)
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    ListenOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    config_path,
-    load_config,
 )
 
 __all__ = [
@@ -523,14 +516,9 @@ def calibrate(
     max_spread: Annotated[
         float, typer.Option("--max-spread", help="Largest deviation (m) from the mean while sampling.")
     ] = 0.01,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
 ) -> None:
     """Solve the arena calibration (yaw about Down, NED offset) from a body on known marks."""
-    cfg = load_config(config, required=write or up_axis is None or points is None)
+    cfg = global_config(required=write or up_axis is None or points is None)
     try:
         up = UpAxis.parse(up_axis if up_axis is not None else cfg.mocap.up_axis if cfg else "y")
         if points is not None:
@@ -546,7 +534,7 @@ def calibrate(
             if marks is not None and len(marks) < 2:
                 raise CalibrateError("give at least two --mark (yaw needs two points)")
             key_names = body_keys(body)
-            with open_bus(cfg.zenoh if cfg else None, bus_options(mode, connect, listen, zconfig)) as bus:
+            with open_bus(cfg.zenoh if cfg else None, global_bus()) as bus:
                 subs = [bus.subscribe(k, capacity=4096, ring=False) for k in key_names]
                 typer.echo(f"sampling {' / '.join(key_names)}; Motive up axis {up.value}")
                 pairs = _measure(
@@ -555,7 +543,7 @@ def calibrate(
         sol = solve(pairs, up)
         _report(pairs, sol)
         if write:
-            path = config_path(config)
+            path = global_config_file()
             write_calibration(path, sol.calibration)
             typer.echo(f"wrote [calibration] to {path} (restart the transform service to apply it)")
     except (CalibrateError, FrameError) as exc:

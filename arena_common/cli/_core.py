@@ -14,18 +14,14 @@ import typer
 
 from arena_common.bus import security
 from arena_common.bus.session import Received
+from arena_common.cli._globals import bus as global_bus
+from arena_common.cli._globals import config as global_config
+from arena_common.cli._globals import current as global_options
 from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.errors import ConfigError
 from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
     HostOpt,
-    ListenOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
 )
 from arena_common.runtime.service import host_name, running, setup_logging
 
@@ -72,20 +68,15 @@ def echo(
     rate: Annotated[bool, typer.Option("--rate", help="Show message rates per key instead.")] = False,
     count: Annotated[int, typer.Option("--count", "-n", help="Stop after N messages (0: never).")] = 0,
     duration: Annotated[float, typer.Option("--duration", help="Stop after S seconds (0: never).")] = 0.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
 ) -> None:
     """Print every payload published on KEYEXPR, decoded; undecodable ones are reported and skipped."""
-    cfg = load_config(config, required=False)
+    cfg = global_config(required=False)
     setup_logging("WARNING")
     stop = threading.Event()
     shown = 0
     t_end = time.monotonic() + duration if duration > 0 else float("inf")
     counts: dict[str, int] = {}
-    with running("echo", cfg, bus_options(mode, connect, listen, zconfig), stop=stop) as svc:
+    with running("echo", cfg, global_bus(), stop=stop) as svc:
         sub = svc.bus.subscribe(keyexpr, capacity=10_000, ring=False)
         last_print = time.monotonic()
         while not svc.stopped and time.monotonic() < t_end:
@@ -126,15 +117,12 @@ def echo(
 
 
 def router(
-    config: ConfigOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
     host: HostOpt = None,
 ) -> None:
     """Run a Zenoh router (a Python session in router mode; no separate binary needed)."""
-    cfg = load_config(config, required=False)
+    cfg = global_config(required=False)
     setup_logging()
-    opts = bus_options("router", None, listen or list(cfg.zenoh.router_listen if cfg else ()), zconfig)
+    opts = global_bus("router", list(global_options().listen) or list(cfg.zenoh.router_listen if cfg else ()))
     extra = security.router_settings(cfg, cfg.security, host_name(host)) if cfg else {}
     opts = replace(opts, mode="router", connect=(), settings={"connect/endpoints": [], **extra})
     with running("router", cfg, opts, host=host) as svc:

@@ -24,11 +24,12 @@ from rich.live import Live
 from rich.text import Text
 
 from arena_common.cli._flight import Snapshot
-from arena_common.client.vehicle import Arena, Swarm, Vehicle
+from arena_common.cli._globals import config_file as global_config_file
+from arena_common.client import Arena, Swarm, Vehicle
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ArenaError
-from arena_common.runtime.options import ConfigOpt, config_path, load_config
-from arena_common.runtime.supervisor import child_setup
+from arena_common.runtime.options import load_config
+from arena_common.runtime.process import child_setup
 
 console = Console()
 WATCH_3D = (
@@ -101,10 +102,9 @@ def demo(
     ] = False,
     log: Annotated[Path, typer.Option(help="Where the arena's own logs go.")] = Path("arena-demo.log"),
     ready_timeout: Annotated[float, typer.Option(help="Seconds to wait for the arena to come up.")] = 90.0,
-    config: ConfigOpt = None,
 ) -> None:
     """Run the simulated arena from CONFIG and fly a formation demo with every vehicle, live status shown."""
-    path = config_path(config_file or config)
+    path = global_config_file(config_file)
     cfg = load_config(path)
     host = next(iter(cfg.hosts), None)
     if host is None:

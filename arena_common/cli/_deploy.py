@@ -21,18 +21,13 @@ from typing import Annotated
 
 import typer
 
+from arena_common.cli._globals import bus as global_bus
+from arena_common.cli._globals import config as global_config
 from arena_common.core import keys
 from arena_common.core.config import ArenaConfig, HostSpec
 from arena_common.core.errors import ArenaError, BusError, ConfigError
 from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
     HostOpt,
-    ListenOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
 )
 from arena_common.runtime.service import Service, running
 from arena_common.runtime.supervisor import SUPERVISOR_SERVICE, Supervisor, host_options, plan, supervise
@@ -189,7 +184,7 @@ def systemd_cmd(
     workdir: Annotated[Path, typer.Option("--workdir", help="Services' working directory.")] = REPO,
 ) -> None:
     """Write systemd units for HOST: one per service, gateway/downsampler per vehicle, arena.target."""
-    cfg = load_config(config)
+    cfg = global_config(path=config)
     try:
         units = render_systemd(cfg, host, python=python, workdir=workdir, user=user)
         written = write_units(units, prefix)
@@ -228,21 +223,16 @@ def choose_host(cfg: ArenaConfig, host: str | None = None) -> HostSpec:
 
 def up(
     config_arg: ConfigArg = None,
-    config: ConfigOpt = None,
     host: HostOpt = None,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="Print what would start.")] = False,
     grace: Annotated[float, typer.Option("--grace", help="Seconds between SIGTERM and SIGKILL.")] = 5.0,
     log_level: Annotated[
         str | None, typer.Option("--log-level", help="Passed to every service (DEBUG, INFO…).")
     ] = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
 ) -> None:
     """Run every service the config assigns to this host, each its own process, restarted if it dies."""
-    cfg = load_config(config_arg or config)
-    options = bus_options(mode, connect, listen, zconfig)
+    cfg = global_config(path=config_arg)
+    options = global_bus()
     try:
         h = choose_host(cfg, host)
         specs = plan(cfg, h.name, options=options, log_level=log_level)

@@ -13,10 +13,11 @@ from rich.live import Live
 from rich.table import Table
 
 from arena_common.bus.session import Bus
-from arena_common.client.vehicle import Arena, Vehicle
+from arena_common.cli._globals import config as global_config
+from arena_common.cli._globals import current as global_options
+from arena_common.client import Arena, Vehicle
 from arena_common.core import keys, wire
 from arena_common.core.errors import ArenaError
-from arena_common.runtime.options import ConfigOpt, ConnectOpt, ModeOpt, load_config
 
 console = Console()
 err_console = Console(stderr=True)
@@ -25,9 +26,10 @@ Target = Annotated[str, typer.Argument(help="Vehicle name, or 'all' for every ve
 Timeout = Annotated[float, typer.Option("--timeout", help="Seconds to wait for the vehicle.")]
 
 
-def _arena(config: Any, mode: str | None, connect: list[str] | None) -> Arena:
-    cfg = load_config(config, required=False)
-    return Arena(cfg, connect=connect or (), mode=mode, name="arena-cli")
+def _arena() -> Arena:
+    cfg = global_config(required=False)
+    g = global_options()
+    return Arena(cfg, connect=g.connect, mode=g.mode, name="arena-cli")
 
 
 class Snapshot:
@@ -40,6 +42,8 @@ class Snapshot:
         self.state_time: dict[str, float] = {}
         self._stats = bus.subscribe(keys.STATS_ALL, capacity=512, ring=True)
         self._states = bus.subscribe("arena/*/state", capacity=512, ring=True)
+        self.clocks: dict[str, wire.ClockOffset] = {}
+        self._clocks = bus.subscribe(keys.CLOCK_ALL, capacity=512, ring=True)
 
     def refresh(self) -> None:
         for item in self._stats.channel.drain():
@@ -50,6 +54,9 @@ class Snapshot:
                 name = item.key.split("/")[1]
                 self.states[name] = item.payload
                 self.state_time[name] = time.monotonic()
+        for item in self._clocks.channel.drain():
+            if isinstance(item.payload, wire.ClockOffset):
+                self.clocks[f"{item.payload.host}/{item.payload.service}"] = item.payload
 
     def render(self) -> Table:
         alive = self.bus.alive(keys.ALIVE_ALL, 0.5)
@@ -111,18 +118,47 @@ class Snapshot:
         grid = Table.grid()
         grid.add_row(services)
         grid.add_row(vehicles)
+        grid.add_row(clock_table(self.clocks))
         return grid
+
+
+def clock_table(clocks: dict[str, wire.ClockOffset]) -> Table:
+    """One row per host: its clock offset to the mocap host's (the best-measured of its services)."""
+    table = Table(title="clocks (offset to the mocap host's clock)", title_justify="left")
+    for col in ("host", "state", "offset ms", "± ms", "rtt ms", "reference", "by"):
+        table.add_column(col, justify="right" if col.endswith("ms") else "left")
+    best: dict[str, wire.ClockOffset] = {}
+    for c in clocks.values():
+        b = best.get(c.host)
+        rank = (c.state != "reference", c.unc is None, c.unc if c.unc is not None else 0.0)
+        if b is None or rank < (b.state != "reference", b.unc is None, b.unc if b.unc is not None else 0.0):
+            best[c.host] = c
+    for host in sorted(best):
+        c = best[host]
+        colour = {"reference": "green", "ok": "green", "uncertain": "red", "unknown": "red"}.get(
+            c.state, "yellow"
+        )
+        offset = "" if c.off is None else f"{1000 * c.off:+.2f}"
+        if c.off is not None and c.state == "ok" and abs(c.off) > 0.01:
+            offset = f"[red]{offset}[/] (chrony!)"
+        table.add_row(
+            host,
+            f"[{colour}]{c.state}[/]",
+            offset,
+            "" if c.unc is None else f"{1000 * c.unc:.2f}",
+            "" if c.rtt is None else f"{1000 * c.rtt:.2f}",
+            c.ref,
+            c.service,
+        )
+    return table
 
 
 def status(
     watch: Annotated[bool, typer.Option("--watch", "-w", help="Keep the table live until Ctrl-C.")] = False,
     wait: Annotated[float, typer.Option("--wait", help="Seconds to listen before printing.")] = 1.2,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
 ) -> None:
     """Every service and vehicle alive on the bus, from any machine: host, rates, armed, mode, battery."""
-    with _arena(config, mode, connect) as arena:
+    with _arena() as arena:
         snap = Snapshot(arena.bus)
         time.sleep(wait)
         snap.refresh()
@@ -142,15 +178,13 @@ def status(
 def top(
     keyexpr: Annotated[str, typer.Argument(help="Keys to watch.")] = "arena/**",
     duration: Annotated[float, typer.Option("--duration", help="Stop after S seconds (0: Ctrl-C).")] = 0.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
 ) -> None:
     """Rates and latencies (receive time minus measurement time) per key, live."""
-    with _arena(config, mode, connect) as arena:
+    with _arena() as arena:
         sub = arena.bus.subscribe(keyexpr, capacity=100_000, ring=False)
         counts: dict[str, int] = defaultdict(int)
         lats: dict[str, list[float]] = defaultdict(list)
+        clocks: dict[str, wire.ClockOffset] = {}
         end = time.monotonic() + duration if duration > 0 else math.inf
 
         def table(dt: float) -> Table:
@@ -165,7 +199,12 @@ def top(
                     else ["", "", ""]
                 )
                 t.add_row(k, f"{counts[k] / dt:.1f}", *fig)
-            return t
+            if not clocks:
+                return t
+            grid = Table.grid()
+            grid.add_row(t)
+            grid.add_row(clock_table(clocks))
+            return grid
 
         last = time.monotonic()
         with Live(table(1.0), console=console, refresh_per_second=1) as live:
@@ -174,6 +213,8 @@ def top(
                     item = sub.get(0.1)
                     if item is not None and item.payload is not None:
                         counts[item.key] += 1
+                        if isinstance(item.payload, wire.ClockOffset):
+                            clocks[f"{item.payload.host}/{item.payload.service}"] = item.payload
                         t = getattr(item.payload, "t", 0)
                         if t:
                             lats[item.key].append((item.t_recv - t) / 1e9)
@@ -194,11 +235,9 @@ def _targets(arena: Arena, target: str) -> list[Vehicle]:
     return [arena.vehicle(n) for n in names]
 
 
-def _act(
-    target: str, config: Any, mode: str | None, connect: list[str] | None, what: str, action: Any
-) -> None:
+def _act(target: str, what: str, action: Any) -> None:
     try:
-        with _arena(config, mode, connect) as arena:
+        with _arena() as arena:
             vehicles = _targets(arena, target)
             arena.swarm(v.name for v in vehicles).run(action)
     except ArenaError as exc:
@@ -210,51 +249,39 @@ def _act(
 def arm(
     target: Target,
     timeout: Timeout = 5.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
 ) -> None:
     """Arm the motors."""
-    _act(target, config, mode, connect, "armed", lambda v: v.arm(timeout))
+    _act(target, "armed", lambda v: v.arm(timeout))
 
 
 def disarm(
     target: Target,
     timeout: Timeout = 5.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
 ) -> None:
     """Disarm the motors (refused in the air; see kill)."""
-    _act(target, config, mode, connect, "disarmed", lambda v: v.disarm(timeout))
+    _act(target, "disarmed", lambda v: v.disarm(timeout))
 
 
 def takeoff(
     target: Target,
     height: Annotated[float, typer.Argument(help="Height above the floor [m].")] = 1.0,
     timeout: Timeout = 20.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
 ) -> None:
     """Take off to a height and wait until there."""
-    _act(target, config, mode, connect, f"at {height} m", lambda v: v.takeoff(height, timeout))
+    _act(target, f"at {height} m", lambda v: v.takeoff(height, timeout))
 
 
 def land(
     target: Target,
     timeout: Timeout = 30.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
 ) -> None:
     """Land and wait until on the ground and disarmed."""
-    _act(target, config, mode, connect, "landed", lambda v: v.land(timeout))
+    _act(target, "landed", lambda v: v.land(timeout))
 
 
-def hold(target: Target, config: ConfigOpt = None, mode: ModeOpt = None, connect: ConnectOpt = None) -> None:
+def hold(target: Target) -> None:
     """Hold position."""
-    _act(target, config, mode, connect, "holding", lambda v: v.hold())
+    _act(target, "holding", lambda v: v.hold())
 
 
 def goto(
@@ -265,37 +292,28 @@ def goto(
     yaw: Annotated[float | None, typer.Option(help="Yaw [deg].")] = None,
     tolerance: Annotated[float, typer.Option(help="Arrival tolerance [m].")] = 0.1,
     timeout: Timeout = 30.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
 ) -> None:
     """Fly to NORTH EAST DOWN (arena frame, metres; down is negative above the floor)."""
     yaw_rad = math.radians(yaw) if yaw is not None else None
     _act(
         target,
-        config,
-        mode,
-        connect,
         f"at ({north}, {east}, {down})",
         lambda v: v.goto(north, east, down, yaw_rad, tolerance, timeout),
     )
 
 
-def kill(target: Target, config: ConfigOpt = None, mode: ModeOpt = None, connect: ConnectOpt = None) -> None:
+def kill(target: Target) -> None:
     """Cut the motors now, in the air too."""
-    _act(target, config, mode, connect, "killed", lambda v: v.kill())
+    _act(target, "killed", lambda v: v.kill())
 
 
 def estop(
     kill_motors: Annotated[bool, typer.Option("--kill", help="Cut motors instead of landing.")] = False,
     reason: Annotated[str, typer.Option(help="Why (logged by every gateway).")] = "operator",
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
 ) -> None:
     """Stop everything: every vehicle lands at once (or cuts its motors with --kill)."""
     try:
-        with _arena(config, mode, connect) as arena:
+        with _arena() as arena:
             arena.estop(kill=kill_motors, reason=reason)
             time.sleep(0.2)  # let the reliable publication leave before the session closes
     except ArenaError as exc:

@@ -18,18 +18,11 @@ from typing import Annotated, Any
 import typer
 
 from arena_common.bus.session import Bus, open_bus
+from arena_common.cli._globals import bus as global_bus
+from arena_common.cli._globals import config as global_config
 from arena_common.core import keys, wire
 from arena_common.core.errors import ArenaError
 from arena_common.mavlink.signing import SigningError, generate_key_file, write_px4_secret
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    ListenOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
 
 px4_app = typer.Typer(
     help="PX4 set-up of the arena's vehicles (through their gateways).", no_args_is_help=True
@@ -76,13 +69,11 @@ def table(report: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _run(
-    op: str, drone: str, timeout: float, config: Any, mode: Any, connect: Any, listen: Any, zc: Any
-) -> None:
-    cfg = load_config(config, required=False)
+def _run(op: str, drone: str, timeout: float) -> None:
+    cfg = global_config(required=False)
     try:
         keys.validate_name(drone)
-        with open_bus(cfg.zenoh if cfg else None, bus_options(mode, connect, listen, zc)) as bus:
+        with open_bus(cfg.zenoh if cfg else None, global_bus()) as bus:
             result = request(bus, drone, op, timeout)
     except ArenaError as exc:
         typer.echo(f"error: {exc}", err=True)
@@ -110,42 +101,27 @@ def _run(
 def check(
     drone: Drone,
     timeout: Timeout = 10.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
 ) -> None:
     """Read the arena's required PX4 parameters of DRONE and show which differ."""
-    _run("check", drone, timeout, config, mode, connect, listen, zconfig)
+    _run("check", drone, timeout)
 
 
 @px4_app.command("setup")
 def setup(
     drone: Drone,
     timeout: Timeout = 60.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
 ) -> None:
     """Write the arena's required PX4 parameters of DRONE that differ, reboot it when one needs it, verify."""
-    _run("setup", drone, timeout, config, mode, connect, listen, zconfig)
+    _run("setup", drone, timeout)
 
 
 @px4_app.command("reboot")
 def reboot(
     drone: Drone,
     timeout: Timeout = 60.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
 ) -> None:
     """Reboot the autopilot of DRONE (refused when armed) and wait until it is back."""
-    _run("reboot", drone, timeout, config, mode, connect, listen, zconfig)
+    _run("reboot", drone, timeout)
 
 
 @px4_app.command("keygen")

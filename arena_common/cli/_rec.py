@@ -12,18 +12,13 @@ import typer
 import zenoh
 
 from arena_common.bus.session import open_bus
+from arena_common.cli._globals import bus as global_bus
+from arena_common.cli._globals import config as global_config
 from arena_common.core import keys, wire
 from arena_common.core.errors import ArenaError
 from arena_common.recording import mcap as recording
 from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
     HostOpt,
-    ListenOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
 )
 from arena_common.runtime.service import running, setup_logging
 
@@ -79,20 +74,15 @@ def _control(
     op: str,
     args: dict[str, Any],
     target: str,
-    config: Path | None,
-    mode: str | None,
-    connect: list[str] | None,
-    listen: list[str] | None,
-    zconfig: Path | None,
     timeout: float = 5.0,
 ) -> None:
     if target != "*":
         keys.validate_name(target, "host name")
-    cfg = load_config(config, required=False)
+    cfg = global_config(required=False)
     key = f"{keys.ROOT}/sys/rec/{target}"
     command = wire.Command(op=op, args=args, src="arena rec", timeout=timeout, t=wire.now_ns())
     results: list[tuple[str, wire.CommandResult]] = []
-    with open_bus(cfg.zenoh if cfg else None, bus_options(mode, connect, listen, zconfig)) as bus:
+    with open_bus(cfg.zenoh if cfg else None, global_bus()) as bus:
         deadline = time.monotonic() + timeout
         # A fresh session may not know the recorders' queryables yet: ask again while nobody answered.
         while not results and time.monotonic() < deadline:
@@ -138,44 +128,29 @@ def _control(
 def start_cmd(
     name: Annotated[str, typer.Argument(help="Experiment name (letters, digits, '_', '-', '.').")],
     recorder: RecorderOpt = "*",
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
 ) -> None:
     """Start a new file NAME_<host>_<time>.mcap on the recorders."""
     try:
         keys.validate_name(name, "experiment name")
     except ArenaError as exc:
         raise _fail(exc) from None
-    _control("start", {"name": name}, recorder, config, mode, connect, listen, zconfig)
+    _control("start", {"name": name}, recorder)
 
 
 @rec_app.command("stop")
 def stop_cmd(
     recorder: RecorderOpt = "*",
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
 ) -> None:
     """Close the current file; the recorders idle until the next `rec start` (or arming)."""
-    _control("stop", {}, recorder, config, mode, connect, listen, zconfig)
+    _control("stop", {}, recorder)
 
 
 @rec_app.command("status")
 def status_cmd(
     recorder: RecorderOpt = "*",
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
 ) -> None:
     """What each recorder is doing: state, file, counters."""
-    _control("ping", {}, recorder, config, mode, connect, listen, zconfig)
+    _control("ping", {}, recorder)
 
 
 def _declare(session: zenoh.Session, key: str, encoding: str) -> zenoh.Publisher:
@@ -211,11 +186,6 @@ def replay_cmd(
         float,
         typer.Option("--start-delay", help="Wait up to this long for a subscriber before the first message."),
     ] = 2.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
     host: HostOpt = None,
 ) -> None:
     """Publish a recording again with its original timing, bytes and encodings."""
@@ -223,10 +193,10 @@ def replay_cmd(
         mapping = recording.parse_remap(remap or [])
     except ArenaError as exc:
         raise _fail(exc) from None
-    cfg = load_config(config, required=False)
+    cfg = global_config(required=False)
     setup_logging("WARNING")
     stop = threading.Event()
-    with running("replay", cfg, bus_options(mode, connect, listen, zconfig), host=host, stop=stop) as svc:
+    with running("replay", cfg, global_bus(), host=host, stop=stop) as svc:
         pubs: dict[tuple[str, str], Any] = {}
 
         def publish(key: str, data: bytes, encoding: str) -> None:

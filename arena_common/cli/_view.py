@@ -6,17 +6,12 @@ from typing import Annotated
 
 import typer
 
+from arena_common.cli._globals import bus as global_bus
+from arena_common.cli._globals import config as global_config
 from arena_common.recording.live import DEFAULT_PORT, LiveView, serve
 from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
     HostOpt,
-    ListenOpt,
     LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
 )
 from arena_common.runtime.service import setup_logging
 
@@ -32,17 +27,12 @@ def view_cmd(
     key_exprs: Annotated[
         list[str] | None, typer.Option("--keys", "-k", help="Keys to show (repeatable; default arena/**).")
     ] = None,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
     host: HostOpt = None,
     log_level: LogOpt = "WARNING",
 ) -> None:
     """Serve the arena live in 3D over the Foxglove WebSocket protocol (open ws://ADDRESS:PORT in Foxglove)."""
     setup_logging(log_level)
-    cfg = load_config(config, required=False)
+    cfg = global_config(required=False)
 
     def ready(view: LiveView) -> None:
         typer.echo(
@@ -53,7 +43,7 @@ def view_cmd(
     try:
         serve(
             cfg,
-            bus_options(mode, connect, listen, zconfig),
+            global_bus(),
             address=address,
             port=port,
             key_exprs=key_exprs or ["arena/**"],
