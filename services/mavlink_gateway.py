@@ -50,7 +50,7 @@ def main(
     vehicle_key(cfg, vehicle)
     with (
         running(SERVICE, cfg, options, vehicle=vehicle, host=host, stop=stop) as svc,
-        Gateway(cfg, vehicle, svc.bus, options=gateway, stats=svc.stats, log=svc.log) as gw,
+        Gateway(cfg, vehicle, svc.bus, options=gateway, stats=svc.stats, log=svc.log, clock=svc.clock) as gw,
     ):
         gw.run(svc.stop)
 

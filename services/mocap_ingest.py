@@ -217,7 +217,8 @@ def main(
     loss_timeout: float = 1.0,
 ) -> None:
     """Run until ``stop`` is set (or SIGINT/SIGTERM)."""
-    with running("mocap", cfg, options, host=host, stop=stop) as svc:
+    # The ingest's clock stamps every pose: it is the arena's time reference (arena/sys/time).
+    with running("mocap", cfg, options, host=host, stop=stop, clock_reference=True) as svc:
         ingest = Ingest(svc, cfg)
         source: MocapSource | None = None
         backoff = 0.5

@@ -4,8 +4,7 @@ a dead router, and gateways that only ever talk to their own vehicle."""
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
+import signal
 import threading
 import time
 from collections.abc import Callable
@@ -18,7 +17,7 @@ from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.config import ZenohSpec
 from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock
-from tests.conftest import REPO, free_port, wait_for, write_config
+from tests.conftest import Proc, free_port, service_argv, wait_for, write_config
 from tests.test_gateway import ARENA_PARAMS, SPEED, MavPeer, Rig, rig_factory  # noqa: F401  (make_rig)
 
 
@@ -167,24 +166,21 @@ def test_estop_lands_and_estop_kill_stops_the_motors(make_rig: Callable[..., Rig
 
 
 def test_gateway_killed_mid_air_vehicle_lands_by_itself(
-    arena_config: Callable[..., config_mod.ArenaConfig], bus_factory: Callable[[], Bus], tmp_path: Path
+    arena_config: Callable[..., config_mod.ArenaConfig],
+    bus_factory: Callable[[], Bus],
+    processes: Callable[..., Proc],
 ) -> None:
-    cfg = arena_config(speed=SPEED)
+    # The rig feeds vision itself: no mocap ingest, so no time reference on the bus to judge clocks by.
+    cfg = arena_config(speed=SPEED, extra="[clock]\nrequire = false")
     rig = Rig(cfg, bus_factory(), params=ARENA_PARAMS)
-    log = (tmp_path / "gateway.log").open("w")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.mavlink_gateway", "--vehicle", "d1", "-c", cfg.path],
-        cwd=REPO,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-    )
+    proc = processes("gateway", service_argv("mavlink_gateway", cfg.path, "--vehicle", "d1", host=None))
     try:
         ap = rig.aps["d1"]
         rig.wait_ready("d1", 60.0)
         rig.fly("d1")
         rig.ok("d1", "goto", p=[-0.5, 0.5, -1.2], wait=True, timeout=15.0)
         assert ap.mode_name == "OFFBOARD"
-        proc.kill()  # kill -9: no goodbye, no land command
+        proc.signal(signal.SIGKILL)  # kill -9: no goodbye, no land command
         proc.wait(10.0)
         wait_for(lambda: ap.mode_name == "AUTO.LAND", 5.0, what="a failsafe landing")
         wait_for(lambda: ap.true_pose().position[2] == 0.0, 15.0, what="touchdown")
@@ -193,10 +189,7 @@ def test_gateway_killed_mid_air_vehicle_lands_by_itself(
         texts = " | ".join(t for _, t in ap.statustexts)
         assert "no position estimate" in texts or "no offboard signal" in texts, texts
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10.0)
-        log.close()
+        proc.stop()
         rig.close()
 
 
@@ -255,3 +248,23 @@ def test_two_vehicles_each_gateway_talks_only_to_its_own(make_rig: Callable[...,
     finally:
         loop.stop()
         intruder.close()
+
+
+def test_without_a_time_reference_arming_is_refused_naming_the_clock(
+    arena_config: Callable[..., config_mod.ArenaConfig],
+    bus_factory: Callable[[], Bus],
+    processes: Callable[..., Proc],
+) -> None:
+    cfg = arena_config(speed=SPEED)  # clock.require defaults to true; no mocap ingest answers the time
+    assert cfg.clock.require
+    rig = Rig(cfg, bus_factory(), params=ARENA_PARAMS)
+    proc = processes("gateway", service_argv("mavlink_gateway", cfg.path, "--vehicle", "d1", host=None))
+    try:
+        rig.wait_ready("d1", 60.0)
+        rig.wait_state("d1", lambda s: "clock_unknown" in s.fs, 15.0, "the clock flagged unknown")
+        result = rig.cmd("d1", "arm", 5.0)
+        assert result.result == "REFUSED" and result.reason.startswith("clock:"), result
+        assert not rig.aps["d1"].armed
+    finally:
+        proc.stop()
+        rig.close()

@@ -312,6 +312,22 @@ VECTORS: tuple[Vector, ...] = (
         ),
         "One second of a gateway's counters.",
     ),
+    Vector(
+        "clockoffset_companion",
+        keys.clock("cc1", "gateway.d1"),
+        wire.ClockOffset(
+            t=_T,
+            host="cc1",
+            service="gateway.d1",
+            state="ok",
+            ref="ground",
+            off=-0.30025,
+            unc=0.0007,
+            rtt=0.0016,
+            n=120,
+        ),
+        "A companion computer whose clock is 0.300 s ahead of the mocap host's, known to ±0.7 ms.",
+    ),
 )
 
 

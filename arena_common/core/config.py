@@ -214,6 +214,23 @@ class PipelineSpec(Spec, frozen=True):
     decimate: Literal["downsampler", "transform"] = "downsampler"
 
 
+class ClockSpec(Spec, frozen=True):
+    """How every host's wall clock is compared with the mocap host's (the time base of every pose).
+
+    Every service measures its host's offset to the mocap ingest's clock every ``period`` s (request and
+    answer on ``arena/sys/time``, like NTP).  An offset beyond ``max_offset`` raises an event (time to
+    set up chrony); a gateway corrects pose times by the offset, and refuses arming while the offset is
+    unknown or less certain than ``max_uncertainty``.  ``require``: refuse arming also when no mocap time
+    reference answers at all (otherwise pose times are then taken as the gateway host's, and flagged).
+    """
+
+    period: Annotated[float, Meta(ge=0.05, le=60.0)] = 1.0
+    max_offset: Annotated[float, Meta(ge=0.0, le=3600.0)] = 0.01
+    max_uncertainty: Annotated[float, Meta(ge=1e-6, le=10.0)] = 0.01
+    drift_ppm: Annotated[float, Meta(ge=0.0, le=10000.0)] = 200.0  # assumed worst clock drift between samples
+    require: bool = True
+
+
 class ArenaConfig(Spec, frozen=True):
     """A whole arena, as one TOML file describes it."""
 
@@ -228,6 +245,7 @@ class ArenaConfig(Spec, frozen=True):
     recorder: RecorderSpec = msgspec.field(default_factory=RecorderSpec)
     security: SecuritySpec = msgspec.field(default_factory=SecuritySpec)
     pipeline: PipelineSpec = msgspec.field(default_factory=PipelineSpec)
+    clock: ClockSpec = msgspec.field(default_factory=ClockSpec)
 
     def vehicle(self, name: str) -> VehicleSpec:
         """A vehicle by name; :class:`ConfigError` listing the known names if absent."""
@@ -482,6 +500,7 @@ _SECTIONS = {
     "recorder": RecorderSpec,
     "security": SecuritySpec,
     "pipeline": PipelineSpec,
+    "clock": ClockSpec,
 }
 
 

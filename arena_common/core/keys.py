@@ -60,6 +60,18 @@ KEYS: tuple[KeySpec, ...] = (
     KeySpec("arena/sys/stats/<host>/<service>", "Stats", "stream", "Counters of each service, every second."),
     KeySpec("arena/sys/bodies/<body>", "MocapPose", "stream", "Rigid bodies no vehicle claims (optional)."),
     KeySpec("arena/sys/rec/<host>", "Command → CommandResult", "query", "Recorder control (start/stop)."),
+    KeySpec(
+        "arena/sys/time",
+        "Command → CommandResult",
+        "query",
+        "The mocap host's clock (op time): answered by the mocap ingest, for every host's clock offset.",
+    ),
+    KeySpec(
+        "arena/sys/clock/<host>/<service>",
+        "ClockOffset",
+        "stream",
+        "Each host's clock offset to the mocap host's, as each of its services measures it.",
+    ),
 )
 
 
@@ -153,6 +165,13 @@ def rec_control(host: str) -> str:
     return f"{ROOT}/sys/rec/{validate_name(host, 'host name')}"
 
 
+def clock(host: str, service: str) -> str:
+    """Clock offset key of one service's host: ``arena/sys/clock/<host>/<service>``."""
+    return f"{ROOT}/sys/clock/{validate_name(host, 'host name')}/{validate_name(service, 'service name')}"
+
+
+TIME = f"{ROOT}/sys/time"
+CLOCK_ALL = f"{ROOT}/sys/clock/**"
 ALIVE_ALL = f"{ROOT}/sys/alive/**"
 STATS_ALL = f"{ROOT}/sys/stats/**"
 
@@ -174,12 +193,14 @@ def parse(key: str) -> ParsedKey:
     if parts[1] == "estop" and len(parts) == 2:
         return ParsedKey("estop")
     if parts[1] == "sys":
-        if len(parts) == 5 and parts[2] in ("alive", "stats"):
+        if len(parts) == 5 and parts[2] in ("alive", "stats", "clock"):
             return ParsedKey(parts[2], extra=f"{parts[3]}/{parts[4]}")
         if len(parts) == 4 and parts[2] == "bodies":
             return ParsedKey("bodies", extra=parts[3])
         if len(parts) == 4 and parts[2] == "rec":
             return ParsedKey("rec", extra=parts[3])
+        if len(parts) == 3 and parts[2] == "time":
+            return ParsedKey("time")
         raise InvalidName(f"unknown system key: {key!r}")
     drone = validate_name(parts[1])
     if len(parts) == 3 and parts[2] in (

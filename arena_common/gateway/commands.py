@@ -13,7 +13,10 @@ op             args                                        what happens
 =============  ==========================================  ==================================================
 arm            —                                           refused without heartbeat, with the arena
                                                            parameters unset (unless ``require_setup`` is
-                                                           false) or with stale vision; then
+                                                           false), with this host's clock offset to
+                                                           the mocap host's unknown or uncertain
+                                                           (the reason starts with ``clock:``) or
+                                                           with stale vision; then
                                                            COMPONENT_ARM_DISARM, confirmed by the heartbeat
 disarm         —                                           COMPONENT_ARM_DISARM(0) (PX4 refuses in the air)
 kill           —                                           forced disarm (21196): motors stop, even in the air
@@ -134,6 +137,7 @@ class CommandExecutor:
         origin: GlobalOrigin | None = None,
         vision_stale: float = 0.2,
         goto_tolerance: float = 0.1,
+        clock_problem: Callable[[], str | None] | None = None,
     ) -> None:
         self.vehicle = vehicle
         self.arena = arena
@@ -148,6 +152,7 @@ class CommandExecutor:
         self.origin = origin
         self.vision_stale = vision_stale
         self.goto_tolerance = goto_tolerance
+        self.clock_problem = clock_problem
         self._ops: dict[str, Callable[[Mapping[str, Any], float], wire.CommandResult]] = {
             "arm": self._arm,
             "disarm": self._disarm,
@@ -254,6 +259,10 @@ class CommandExecutor:
         if self.origin is not None:
             # PX4 arms in Hold only with a global position: let the EKF origin exchange finish first.
             self.origin.wait_settled(deadline - 0.5)
+        # Before the vision: a clock that cannot be trusted is why no pose reached the autopilot.
+        clock = self.clock_problem() if self.clock_problem is not None else None
+        if clock is not None:
+            return clock
         age = self.vision.age(time.monotonic())
         if age is None:
             return "no vision pose sent to the autopilot yet"

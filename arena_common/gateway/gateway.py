@@ -38,6 +38,13 @@ SET_GPS_GLOBAL_ORIGIN, so that PX4 without GPS has the global reference its AUTO
 the EKF already has (GNSS) is never replaced, which would re-base its local frame.  It also asks for
 ESTIMATOR_STATUS at ``estimator_rate``: the published state carries no position the autopilot marks
 invalid, nor one dead-reckoned without vision (``fs``: ``position_invalid``, ``dead_reckoning``).
+
+Given the process's :class:`~arena_common.runtime.clock.ClockSync` (``clock``), pose times — on the mocap
+host's clock — are corrected by this host's measured offset before their age is judged and ODOMETRY is
+stamped; arming is refused while that offset is unknown or too uncertain (the reason names the clock),
+an offset beyond ``clock.max_offset`` raises a ``clock`` event naming the fix (chrony), and the state's
+``fs`` says ``clock_unknown``, ``clock_uncertain``, ``clock_offset`` or ``clock_unchecked`` (no
+reference on the bus, ``clock.require`` false).
 """
 
 from __future__ import annotations
@@ -66,6 +73,7 @@ from arena_common.mavlink.link import MSG, Frame, GcsForwarder, MavlinkLink, Mav
 from arena_common.mavlink.metadata import HANDLED_MESSAGES, MetadataClient, MetadataError, reboot_required
 from arena_common.mavlink.protocols import MavCommander, ParamClient, SetupChecker
 from arena_common.mavlink.signing import GATEWAY_UNSIGNED, LinkSigning, vehicle_key
+from arena_common.runtime.clock import ClockStatus, ClockSync
 from arena_common.runtime.service import Stats
 
 __all__ = ["Gateway", "GatewayOptions"]
@@ -116,8 +124,12 @@ class Gateway:
         options: GatewayOptions | None = None,
         stats: Stats | None = None,
         log: logging.Logger | None = None,
+        clock: ClockSync | None = None,
     ) -> None:
         self.cfg = cfg
+        self.clock = clock
+        self._clock_said: tuple[str, bool] | None = None
+        self._clock_grace = time.monotonic() + 2.0 + 3 * cfg.clock.period
         self.spec = v = cfg.vehicle(vehicle)
         self.name = v.name
         self.bus = bus
@@ -150,6 +162,7 @@ class Gateway:
             message=v.vision_message,
             send_velocity=o.send_velocity,
             stats=self.stats,
+            offset_ns=clock.offset_ns if clock is not None else None,
         )
         self.commander = MavCommander(self.link, v.system_id, ack_timeout=o.ack_timeout, attempts=o.attempts)
         self.params = ParamClient(self.link, v.system_id, timeout=o.ack_timeout, attempts=o.attempts)
@@ -168,6 +181,7 @@ class Gateway:
             goto_speed=o.goto_speed,
             goto_climb=o.goto_climb,
             position=lambda: self.state.position(time.monotonic()),
+            velocity=lambda: self.state.v if self.state.position(time.monotonic()) is not None else None,
             stats=self.stats,
         )
         self.executor = CommandExecutor(
@@ -183,6 +197,7 @@ class Gateway:
             events=self.events,
             origin=self.origin,
             vision_stale=o.vision_stale,
+            clock_problem=self.clock_problem if clock is not None else None,
         )
         self.telemetry = TelemetryPublisher(bus, v.name, o.telemetry_rate, exclude=(MSG["TIMESYNC"],))
         gcs_url = o.gcs if o.gcs is not None else v.gcs
@@ -295,6 +310,7 @@ class Gateway:
 
     def _every_second(self, now: float) -> None:
         self._count_link_rejects()
+        self._check_clock()
         self.link.send(
             self.link.mav.heartbeat_encode(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, px4.MAV_STATE_ACTIVE)
         )
@@ -308,6 +324,59 @@ class Gateway:
                 "answered": ts.answered,
             }
             self._safe(self.telemetry.put, "timesync", fields, wire.now_ns())
+
+    def clock_problem(self) -> str | None:
+        """Why pose times cannot be trusted on this host (arming is refused), or None."""
+        if self.clock is None:
+            return None
+        st = self.clock.status()
+        if st.state == "no_reference" and not self.cfg.clock.require:
+            return None
+        return st.problem
+
+    def _clock_flags(self, st: ClockStatus) -> list[str]:
+        if st.state == "no_reference":
+            return ["clock_unknown"] if self.cfg.clock.require else ["clock_unchecked"]
+        flags = {"unknown": ["clock_unknown"], "uncertain": ["clock_uncertain"]}.get(st.state, [])
+        return flags + (["clock_offset"] if st.warning else [])
+
+    def _check_clock(self) -> None:
+        """Emit a ``clock`` event whenever the clock's state or its offset warning changes."""
+        if self.clock is None:
+            return
+        st = self.clock.status()
+        if st.state in ("unknown", "no_reference") and time.monotonic() < self._clock_grace:
+            return  # the first exchanges are under way (and the bus may not know its routes yet)
+        problem = self.clock_problem()
+        said = (st.state, st.warning is not None)  # the figures change with every exchange
+        if said == self._clock_said:
+            return
+        first = self._clock_said is None
+        self._clock_said = said
+        est = st.estimate
+        data: dict[str, Any] = {"state": st.state, "ref": st.ref, "host": self.clock.host}
+        if est is not None:
+            data.update(offset=est.offset, unc=est.unc)
+        if problem is not None:
+            self.events.emit("clock", f"{problem.removeprefix('clock: ')}: arming refused", 3, **data)
+        elif st.warning is not None:
+            self.events.emit("clock", st.warning.removeprefix("clock: "), 4, **data)
+        elif st.state == "no_reference":
+            self.events.emit(
+                "clock",
+                f"no mocap time reference answers on arena/sys/time: pose times are taken as the "
+                f"clock of {self.clock.host} (clock.require is false)",
+                5,
+                **data,
+            )
+        elif not first and est is not None:
+            self.events.emit(
+                "clock",
+                f"{self.clock.host} is within {self.cfg.clock.max_offset * 1e3:.1f} ms of the mocap "
+                f"host's clock ({st.ref}): offset {est.offset * 1e3:+.2f} ± {est.unc * 1e3:.2f} ms",
+                6,
+                **data,
+            )
 
     def _count_link_rejects(self) -> None:
         """Publish what the link dropped since the last call as rejects with a reason."""
@@ -474,6 +543,8 @@ class Gateway:
                 self.events.emit("estimator", "position valid again", 6)
         if self.forwarder.latched is not None and s.mode != "OFFBOARD":
             flags.append("offboard_latched")
+        if self.clock is not None:
+            flags += self._clock_flags(self.clock.status())
         valid = p is not None and problem is None
         bat = s.bat
         msg = wire.State(
@@ -567,7 +638,7 @@ class Gateway:
                 self._failed("vision", exc)
                 continue
             if reason is None:
-                self.stats.latency((wire.now_ns() - pose.t) * 1e-9)
+                self.stats.latency((wire.now_ns() - pose.t + self.vision.correction()) * 1e-9)
             else:
                 self.stats.reject(f"vision: {reason}")
 

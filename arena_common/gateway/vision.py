@@ -5,6 +5,7 @@ from __future__ import annotations
 import collections
 import math
 import time
+from collections.abc import Callable
 
 from arena_common.core import wire
 from arena_common.core.errors import GatewayError
@@ -23,6 +24,12 @@ class VisionSender:
     speed beyond ``max_speed`` m/s or rad/s, anything not finite).  The reset counter is bumped when the
     pose's ``rc`` changes, when the position jumps (more than ``jump_m`` and faster than ``jump_speed``),
     or on :meth:`bump_reset` (a calibration change).
+
+    A pose's ``t`` is on the mocap host's clock.  ``offset_ns`` (when given) returns that clock minus
+    ours (:class:`~arena_common.runtime.clock.ClockSync`, None while unknown): ages are judged, and
+    ODOMETRY's ``time_usec`` stamped, on our clock — the one TIMESYNC shares with the autopilot — whatever
+    our wall clock says; their error is the offset's uncertainty.  Without it (or while unknown) both
+    clocks are taken to agree.
     """
 
     def __init__(
@@ -37,6 +44,7 @@ class VisionSender:
         max_position: float = 1e4,
         max_speed: float = 1e3,
         stats: Stats | None = None,
+        offset_ns: Callable[[], int | None] | None = None,
     ) -> None:
         if message not in ("odometry", "vision_position_estimate"):
             raise GatewayError(
@@ -51,6 +59,8 @@ class VisionSender:
         self.max_position = max_position
         self.max_speed = max_speed
         self.stats = stats or Stats()
+        self.offset_ns = offset_ns
+        self.last_usec = -1
         self.reset_counter = 0
         self.sent = 0
         self.last_t = -1
@@ -69,9 +79,10 @@ class VisionSender:
             return "not tracked"
         clock_given = now_ns is not None
         now_ns = wire.now_ns() if now_ns is None else now_ns
-        if now_ns - pose.t > self.max_age_ns:
+        t_local = pose.t - self.correction()  # the measurement time on our clock
+        if now_ns - t_local > self.max_age_ns:
             return "stale"
-        if pose.t - now_ns > self.max_age_ns:
+        if t_local - now_ns > self.max_age_ns:
             return "from the future"  # once sent, every later pose would be refused as not newer
         if pose.t <= self.last_t:
             return "not newer than the last pose sent"
@@ -88,7 +99,8 @@ class VisionSender:
                 self.bump_reset()
         self._last_rc = pose.rc
         packs = self.link.pack_errors
-        usec = pose.t // 1000
+        # A new offset estimate may move t_local back by its (µs) correction: keep time_usec increasing.
+        usec = max(t_local // 1000, self.last_usec + 1)
         mav = self.link.mav
         if self.message == "odometry":
             args = px4.odometry_args(
@@ -106,7 +118,7 @@ class VisionSender:
             msg = mav.vision_position_estimate_encode(
                 usec, p[0], p[1], p[2], roll, pitch, yaw, cov, self.reset_counter
             )
-        deadline_ns = pose.t + self.max_age_ns
+        deadline_ns = t_local + self.max_age_ns
 
         def fresh() -> bool:
             # The thread may have been stopped (a frozen process, a long pause) since the age check.
@@ -117,6 +129,7 @@ class VisionSender:
                 return "stale"
             return "cannot be packed" if self.link.pack_errors > packs else "link down"
         self.last_t = pose.t
+        self.last_usec = usec
         self.last_p = p
         self.sent += 1
         mono = time.monotonic()
@@ -125,6 +138,13 @@ class VisionSender:
         self.stats.count("vision")
         self.stats.count("out")
         return None
+
+    def correction(self) -> int:
+        """The mocap host's clock minus ours, ns (0 while unknown or not measured)."""
+        if self.offset_ns is None:
+            return 0
+        off = self.offset_ns()
+        return 0 if off is None else off
 
     def _in_range(self, pose: wire.Pose, with_velocity: bool) -> bool:
         lim, vlim = self.max_position, self.max_speed

@@ -13,6 +13,9 @@ Connection strings are pymavlink's:
   came from, so another system sharing the port never receives anything from this link;
 - ``udpout:HOST:PORT`` sends to that address first;
 - ``tcp:HOST:PORT`` connects, ``tcpin:HOST:PORT`` accepts one client;
+- ``serial:DEVICE[:BAUD]`` (``serial:/dev/ttyTHS1:921600``: a companion computer wired to the
+  autopilot's TELEM2) opens a serial port raw, 8N1, no flow control, at BAUD (57600 by default), and
+  reads and writes it without blocking;
 - anything else (``/dev/ttyACM0``, ``/dev/ttyUSB0:921600`` for a baud rate, …) is opened by pymavlink
   and read and written as raw bytes (serial ports need ``pyserial``).
 
@@ -349,6 +352,50 @@ class _TcpServer(_Transport):
         self.listener.close()
 
 
+SERIAL_DEFAULT_BAUD = 57600
+
+
+def parse_serial(rest: str, url: str) -> tuple[str, int]:
+    """(device, baud) of the part after ``serial:``; :class:`MavlinkLinkError` naming what is wrong."""
+    device, sep, baud = rest.rpartition(":")
+    if not sep or not baud.isdigit():
+        device, baud = rest, str(SERIAL_DEFAULT_BAUD)
+    if not device:
+        raise MavlinkLinkError(f"MAVLink connection {url!r}: expected serial:DEVICE[:BAUD]")
+    if not 50 <= int(baud) <= 20_000_000:
+        raise MavlinkLinkError(f"MAVLink connection {url!r}: baud rate {baud} out of 50..20000000")
+    return device, int(baud)
+
+
+class _Serial(_Transport):
+    """A serial port (or a pseudo-terminal), raw bytes, never blocking."""
+
+    def __init__(self, device: str, baud: int) -> None:
+        import serial  # pyserial: only serial links need it
+
+        self.port = serial.Serial(
+            device, baud, timeout=0, write_timeout=1.0, rtscts=False, dsrdtr=False, xonxoff=False
+        )
+        self.eof = False
+
+    def fileno(self) -> int | None:
+        return None if self.eof else int(self.port.fileno())
+
+    def read(self) -> list[tuple[bytes, Any]]:
+        try:
+            data = self.port.read(self.port.in_waiting or 1)
+        except OSError:  # pyserial's SerialException: readable but nothing (the other end went away)
+            self.eof = True
+            return []
+        return [(bytes(data), None)] if data else []
+
+    def write(self, data: bytes) -> None:
+        self.port.write(data)
+
+    def close(self) -> None:
+        self.port.close()
+
+
 class _Pymavlink(_Transport):
     """Serial ports and anything else pymavlink opens, used as a raw byte pipe."""
 
@@ -392,6 +439,8 @@ def open_transport(url: str) -> _Transport:
             return _TcpClient(*_host_port(rest, url))
         if sep and scheme == "tcpin":
             return _TcpServer(*_host_port(rest, url))
+        if sep and scheme == "serial":
+            return _Serial(*parse_serial(rest, url))
         return _Pymavlink(url)
     except MavlinkLinkError:
         raise

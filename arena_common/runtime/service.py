@@ -31,6 +31,7 @@ from arena_common.bus.hosts import host_bus_options, host_name
 from arena_common.bus.session import Bus, BusOptions, open_bus
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
+from arena_common.runtime.clock import ClockSync
 
 LOG_FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
 
@@ -126,6 +127,8 @@ class Service:
         self.started = time.monotonic()
         self._last_warn: dict[str, float] = {}
         self._stats_pub = bus.stream_publisher(keys.stats(host, self.id), wire.Stats)
+        #: This host's clock offset to the mocap host's (set by :func:`running`).
+        self.clock: ClockSync | None = None
 
     @property
     def stopped(self) -> bool:
@@ -186,8 +189,15 @@ def running(
     stop: threading.Event | None = None,
     stats_period: float = 1.0,
     bus: Bus | None = None,
+    clock: bool = True,
+    clock_reference: bool = False,
 ) -> Iterator[Service]:
-    """Run a service: open the bus, declare presence, publish stats, stop cleanly on SIGINT/SIGTERM."""
+    """Run a service: open the bus, declare presence, publish stats, stop cleanly on SIGINT/SIGTERM.
+
+    With ``clock`` the service measures its host's clock offset to the mocap host's
+    (:class:`~arena_common.runtime.clock.ClockSync`, ``svc.clock``); ``clock_reference`` makes it that
+    reference (the mocap ingest: its clock stamps every pose).
+    """
     stop = stop or threading.Event()
     own_bus = bus is None
     host = host_name(host)
@@ -200,6 +210,9 @@ def running(
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, lambda *_: stop.set())
     token = the_bus.token(keys.alive(svc.host, svc.id))
+    if clock or clock_reference:
+        spec = cfg.clock if cfg is not None else None
+        svc.clock = ClockSync(the_bus, svc.host, svc.id, spec, reference=clock_reference, log=svc.log).start()
     stats_thread = threading.Thread(
         target=svc._stats_loop, args=(stats_period,), name=f"{svc.id}:stats", daemon=True
     )
@@ -210,6 +223,8 @@ def running(
     finally:
         stop.set()
         stats_thread.join(timeout=2.0)
+        if svc.clock is not None:
+            svc.clock.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         try:
