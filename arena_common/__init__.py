@@ -2,10 +2,28 @@
 
 The names a user program needs are re-exported here::
 
-    from arena_common import Arena, Vehicle, CommandRejected
+    from arena_common import Arena, Vehicle, CommandRejected, AsyncArena, Trajectory, FlightMode
 """
 
-from arena_common.client.vehicle import Arena, OffboardStream, Swarm, Vehicle
+from arena_common.client import (
+    Arena,
+    ArenaClock,
+    AsyncArena,
+    AsyncVehicle,
+    Battery,
+    EstimatorStatus,
+    FlightMode,
+    Imu,
+    LandedState,
+    OffboardStream,
+    PoseReading,
+    Status,
+    Stream,
+    StreamTimeout,
+    Swarm,
+    Trajectory,
+    Vehicle,
+)
 from arena_common.core.config import ArenaConfig
 from arena_common.core.config import load as load_config
 from arena_common.core.errors import (
@@ -23,18 +41,31 @@ from arena_common.core.errors import (
 
 __all__ = [
     "Arena",
+    "ArenaClock",
     "ArenaConfig",
     "ArenaError",
+    "AsyncArena",
+    "AsyncVehicle",
+    "Battery",
     "BusError",
     "CommandError",
     "CommandRejected",
     "CommandTimeout",
     "ConfigError",
+    "EstimatorStatus",
+    "FlightMode",
+    "Imu",
     "InvalidName",
+    "LandedState",
     "OffboardStream",
     "PayloadError",
+    "PoseReading",
     "SafetyRefused",
+    "Status",
+    "Stream",
+    "StreamTimeout",
     "Swarm",
+    "Trajectory",
     "Vehicle",
     "VehicleNotPresent",
     "load_config",

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from arena_common import Arena, Vehicle
+from arena_common import Arena
 
 
 def slots(center: tuple[float, float], radius: float, angle: float, n: int) -> list[tuple[float, float]]:
@@ -29,14 +29,9 @@ def main(arena: Arena, names: list[str], radius: float = 1.0, height: float = 1.
     swarm.arm()
     swarm.takeoff(height)
     for step in range(turns + 1):
-        targets = dict(
-            zip(names, slots((0.0, 0.0), radius, step * (2 * math.pi / 3) / turns, len(names)), strict=True)
-        )
-
-        def fly(v: Vehicle, t: dict[str, tuple[float, float]] = targets) -> None:
-            v.goto(t[v.name][0], t[v.name][1], -height, yaw=0.0, tolerance=0.15)
-
-        swarm.run(fly)
+        targets = slots((0.0, 0.0), radius, step * (2 * math.pi / 3) / turns, len(names))
+        # One argument per vehicle, in the swarm's order: every vehicle flies to its own slot at once.
+        swarm.run(lambda v, t: v.goto(t[0], t[1], -height, yaw=0.0, tolerance=0.15), targets)
         print(f"formation step {step}: " + ", ".join(f"{v.name} {v.position}" for v in swarm))
     swarm.land()
 

@@ -6,19 +6,22 @@ python examples/hover_land.py --config deploy/sim.toml --vehicle d1
 from __future__ import annotations
 
 import argparse
-import time
 
 from arena_common import Arena
 
 
 def main(arena: Arena, name: str = "d1", height: float = 1.0, hover_s: float = 3.0) -> None:
-    """Arm, take off to ``height``, hover for ``hover_s`` seconds, land."""
+    """Arm, take off to ``height``, hover for ``hover_s`` seconds (arena time), land."""
     drone = arena.vehicle(name)
-    drone.wait_until(lambda v: v.state is not None, timeout=10, what="first state")
+    drone.wait_until(lambda v: v.status is not None, timeout=10, what="first state")
     drone.arm()
     drone.takeoff(height)
-    time.sleep(hover_s)
-    print(f"{name} hovering at {drone.position}")
+    arena.clock.sleep(hover_s)  # arena time: shorter in a simulation that runs faster than real time
+    battery = drone.battery
+    print(
+        f"{name} hovering at {drone.position} (from {drone.position_source}), mode {drone.mode}, "
+        f"battery {battery.remaining if battery else '?'}"
+    )
     drone.land()
 
 

@@ -1,4 +1,5 @@
-"""Fly a square: take off, visit four corners with goto, come back, land.
+"""Fly a square as one smooth trajectory: timed corners, streamed with position, velocity and
+acceleration feed-forward; then land where it started.
 
 python examples/square.py --config deploy/sim.toml --vehicle d1 --side 1.0
 """
@@ -7,20 +8,22 @@ from __future__ import annotations
 
 import argparse
 
-from arena_common import Arena
+from arena_common import Arena, Trajectory
 
 
-def main(arena: Arena, name: str = "d1", side: float = 1.0, height: float = 1.0) -> None:
-    """Fly a square of ``side`` metres around the take-off point, at ``height``, then land there."""
+def main(arena: Arena, name: str = "d1", side: float = 1.0, height: float = 1.0, leg_s: float = 3.0) -> None:
+    """Fly a square of ``side`` metres from the take-off point, ``leg_s`` seconds a side, then land."""
     drone = arena.vehicle(name)
     drone.wait_until(lambda v: v.position is not None, timeout=10, what="first position")
-    n0, e0, _ = drone.position or (0.0, 0.0, 0.0)
     drone.arm()
     drone.takeoff(height)
+    n0, e0, _ = drone.position or (0.0, 0.0, 0.0)
     down = -height
-    for dn, de in ((side, 0.0), (side, side), (0.0, side), (0.0, 0.0)):
-        drone.goto(n0 + dn, e0 + de, down, yaw=0.0, tolerance=0.15)
-        print(f"{name} at corner {drone.position}")
+    corners = [(n0, e0), (n0 + side, e0), (n0 + side, e0 + side), (n0, e0 + side), (n0, e0)]
+    square = Trajectory.waypoints([(i * leg_s, (n, e, down)) for i, (n, e) in enumerate(corners)], yaw=0.0)
+    drone.follow(square)  # refused before anything flies if some point broke the arena's limits
+    drone.wait_until(lambda v: v.position is not None and abs(v.position[0] - n0) < 0.15, 10, what="back")
+    print(f"{name} back at {drone.position} after {square.duration:.0f} s")
     drone.land()
 
 

@@ -1,7 +1,8 @@
-"""A velocity controller written by the user on top of the mocap pose.
+"""A velocity controller written by the user on top of the mocap pose stream.
 
-The program reads the vehicle's mocap pose (arena frame, full rate) and streams velocity setpoints from
-its own proportional law toward a target, with a speed limit — the pattern for your own controllers.
+The program takes every new mocap pose (arena frame, full rate, in order, with its measurement time)
+and answers it with a velocity setpoint from its own proportional law toward a target, with a speed
+limit — the pattern for your own controllers.
 
     python examples/velocity_controller.py --config deploy/sim.toml --vehicle d1 --target 1.0 0.5 -1.0
 """
@@ -10,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
 
 from arena_common import Arena
 
@@ -29,22 +29,22 @@ def main(
     drone.wait_until(lambda v: v.position is not None, timeout=10, what="first position")
     drone.arm()
     drone.takeoff(-target[2])
-    deadline = time.monotonic() + timeout
     with drone.offboard(rate=30) as ctl:
-        while time.monotonic() < deadline:
-            pose = drone.mocap
-            if pose is None or not pose.ok:
-                ctl.velocity(0.0, 0.0, 0.0)  # no mocap: stop rather than guess
-            else:
-                err = [t - p for t, p in zip(target, pose.p, strict=True)]
-                dist = math.sqrt(sum(e * e for e in err))
-                if dist < tolerance:
-                    break
-                scale = min(1.0, max_speed / max(gain * dist, 1e-9))
-                vn, ve, vd = (gain * e * scale for e in err)
-                ctl.velocity(vn, ve, vd, yaw=0.0)
-            time.sleep(0.02)
-        drone.goto(*target, yaw=0.0, tolerance=0.2)  # hand over to the gateway's position hold
+        t_end = None
+        for pose in drone.poses(timeout=1.0):  # every pose; StreamTimeout if the mocap goes silent
+            t_end = t_end or pose.t + int(timeout * 1e9)  # measurement time: arena time of the pose
+            if not pose.ok:
+                ctl.velocity(0.0, 0.0, 0.0)  # not tracked: stop rather than guess
+                continue
+            err = [t - p for t, p in zip(target, pose.p, strict=True)]
+            dist = math.sqrt(sum(e * e for e in err))
+            if dist < tolerance or pose.t > t_end:
+                break
+            scale = min(1.0, max_speed / max(gain * dist, 1e-9))
+            vn, ve, vd = (gain * e * scale for e in err)
+            ctl.velocity(vn, ve, vd, yaw=0.0)
+        ctl.handover(target, yaw=0.0)  # the gateway holds the target from here
+    drone.wait_until(lambda v: math.dist(v.position or (math.inf,) * 3, target) < 0.2, 10, "at the target")
     final = math.dist(drone.position or (math.inf,) * 3, target)
     print(f"{name} reached {drone.position}, {final:.3f} m from the target")
     drone.land()

@@ -6,6 +6,7 @@ vehicle to land by itself; ``arena status`` from a second process shows the whol
 
 from __future__ import annotations
 
+import asyncio
 import importlib.util
 import math
 import os
@@ -118,6 +119,18 @@ def test_formation(sim_arena: tuple[Path, Arena]) -> None:
         assert p is not None and math.dist(p[:2], (n, e)) < 0.25, (name, p)
 
 
+def test_async_example(sim_arena: tuple[Path, Arena]) -> None:
+    path, arena = sim_arena
+    _on_ground(arena, "d1")
+    modes = asyncio.run(
+        _example("async_monitor").main(path, "d1", height=0.8, hover_s=1.0, name="test-async")
+    )
+    _on_ground(arena, "d1")
+    # In order (it may start in AUTO.LAND, where the last landing left it): take off, offboard, land.
+    assert modes[-1] == "AUTO.LAND" and "AUTO.TAKEOFF" in modes, modes
+    assert modes.index("AUTO.TAKEOFF") < modes.index("OFFBOARD") < len(modes) - 1, modes
+
+
 def test_status_from_a_second_process(sim_arena: tuple[Path, Arena]) -> None:
     path, _ = sim_arena
     out = subprocess.run(
@@ -178,19 +191,22 @@ def test_user_program_killed_mid_flight_lands_by_itself(sim_arena: tuple[Path, A
             user.wait(5)
 
 
-def test_readme_program(sim_arena: tuple[Path, Arena]) -> None:
-    """The program in the README's quick start runs as written (config path aside)."""
+def test_readme_programs(sim_arena: tuple[Path, Arena]) -> None:
+    """Every Python program in the README runs as written (config path aside) and flies."""
     path, arena = sim_arena
     text = (REPO / "README.md").read_text()
-    block = text.split("```python\n", 1)[1].split("```", 1)[0]
-    program = block.replace('"deploy/sim.toml"', repr(str(path)))
-    run = subprocess.run(
-        [sys.executable, "-c", program], capture_output=True, text=True, timeout=120, cwd=REPO
-    )
-    assert run.returncode == 0, run.stderr
-    _on_ground(arena, "d1")
+    blocks = [b.split("```", 1)[0] for b in text.split("```python\n")[1:]]
+    assert len(blocks) >= 3
+    for block in blocks:
+        program = block.replace('"deploy/sim.toml"', repr(str(path)))
+        run = subprocess.run(
+            [sys.executable, "-c", program], capture_output=True, text=True, timeout=180, cwd=REPO
+        )
+        assert run.returncode == 0, (block, run.stderr)
+    for name in VEHICLES:
+        _on_ground(arena, name)
     p = arena.vehicle("d1").position
-    assert p is not None and p[0] > 1.2  # flew north from the goto point at (1.0, 0.5)
+    assert p is not None and p[0] > 1.2  # the quick start flew north from the goto point at (1.0, 0.5)
 
 
 def _arena_cli(path: Path, *args: str, timeout: float = 90) -> subprocess.CompletedProcess[str]:
@@ -232,6 +248,6 @@ def test_flight_commands_from_the_shell(sim_arena: tuple[Path, Arena]) -> None:
 def test_shell_errors_exit_non_zero(sim_arena: tuple[Path, Arena]) -> None:
     path, _ = sim_arena
     absent = _arena_cli(path, "arm", "d9", timeout=60)
-    assert absent.returncode == 1 and "no gateway for this vehicle" in absent.stderr
+    assert absent.returncode == 1 and "unknown vehicle 'd9': the config lists d1, d2, d3" in absent.stderr
     bad = _arena_cli(path, "goto", "d1", "north", "0", "0")
     assert bad.returncode == 2 and "Traceback" not in bad.stderr

@@ -1,4 +1,5 @@
-"""The user's side: an :class:`Arena` on the bus, one :class:`Vehicle` object per drone.
+"""One drone as a program sees it: :class:`Vehicle`, from :meth:`Arena.vehicle
+<arena_common.client.arena.Arena.vehicle>`.
 
 ::
 
@@ -9,37 +10,44 @@
         d1.arm()
         d1.takeoff(1.0)
         d1.goto(1.0, 0.5, -1.0, yaw=0.0)
-        with d1.offboard() as ctl:          # a setpoint stream that owns its lease
-            ctl.velocity(0.3, 0.0, 0.0)
-            time.sleep(2.0)
+        for pose in d1.poses(timeout=1.0):   # every new mocap pose, in order, with its measurement time
+            ...
         d1.land()
 
-A vehicle's attributes (position, velocity, attitude, armed, mode, battery, mocap pose…) are kept fresh
-by one background thread per :class:`Arena`; each has an age.  Methods block until the autopilot confirms
-or raise a typed :class:`~arena_common.core.errors.CommandError` saying why.  If the program dies, its
-setpoint leases lapse and the autopilot's offboard-loss failsafe lands the vehicle.
+Attributes are kept fresh by the arena's client thread, each with its source, age and validity:
+:attr:`Vehicle.mocap_pose` (the motion-capture pose), :attr:`Vehicle.estimate` (the autopilot's, not
+valid when the autopilot says so), :attr:`Vehicle.status` (typed state), :attr:`Vehicle.imu`,
+:attr:`Vehicle.battery`, :attr:`Vehicle.estimator`.  Streams (``poses()``, ``vision()``, ``states()``,
+``event_stream()``, ``imu_stream()``…) yield every new item in order; ``on_*`` methods register
+callbacks.  Commands block until the autopilot confirms or raise a typed
+:class:`~arena_common.core.errors.CommandError` saying why.
 """
 
 from __future__ import annotations
 
+import collections
 import math
-import os
-import socket
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
-from types import TracebackType
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
-from arena_common.bus.hosts import host_bus_options, host_name
-from arena_common.bus.session import Bus, BusOptions, Channel, Received, open_bus
-from arena_common.core import config as config_mod
+from arena_common.client.offboard import OffboardStream, trajectory_problem
+from arena_common.client.params import Params
+from arena_common.client.streams import Callback, Stream, Topic
+from arena_common.client.telemetry import SENSOR_MESSAGES, Telemetry
+from arena_common.client.trajectory import Trajectory
+from arena_common.client.types import (
+    Battery,
+    EstimatorStatus,
+    FlightMode,
+    Imu,
+    LandedState,
+    PoseReading,
+    Status,
+)
 from arena_common.core import keys, wire
-from arena_common.core.config import ArenaConfig, ZenohSpec
 from arena_common.core.errors import (
-    CommandError,
     CommandRejected,
     CommandTimeout,
     SafetyRefused,
@@ -47,9 +55,15 @@ from arena_common.core.errors import (
 )
 from arena_common.geometry.frames import quat_to_euler
 
+if TYPE_CHECKING:
+    from arena_common.client.arena import Arena
 
-def _src() -> str:
-    return f"{socket.gethostname()}/{os.getpid()}"
+__all__ = ["MOCAP_MAX_AGE", "STATE_MAX_AGE", "Vehicle"]
+
+Vec3 = tuple[float, float, float]
+MOCAP_MAX_AGE = 0.5  # s: an older mocap pose is not valid
+STATE_MAX_AGE = 1.0  # s: an older state (estimate) is not valid
+ESTIMATOR_MAX_AGE = 3.0  # s: an older ESTIMATOR_STATUS says nothing (as the gateway judges it)
 
 
 class Vehicle:
@@ -57,67 +71,165 @@ class Vehicle:
 
     def __init__(self, arena: Arena, name: str) -> None:
         self.name = keys.validate_name(name)
-        self._arena = arena
+        self.arena = arena
         self._cond = threading.Condition()
         self._state: wire.State | None = None
-        self._state_mono = 0.0
-        self._pose: wire.Pose | None = None
-        self._pose_mono = 0.0
-        self._events: list[wire.Event] = []
+        self._history: collections.deque[wire.Event] = collections.deque(maxlen=100)
+        self.pose_topic: Topic[wire.Pose] = Topic(f"{name}/pose")
+        self.vision_topic: Topic[wire.Pose] = Topic(f"{name}/vision")
+        self.state_topic: Topic[Status] = Topic(f"{name}/state")
+        self.event_topic: Topic[wire.Event] = Topic(f"{name}/events")
+        self.imu_topic: Topic[Imu] = Topic(f"{name}/imu")
+        self.battery_topic: Topic[Battery] = Topic(f"{name}/battery")
+        self.estimator_topic: Topic[EstimatorStatus] = Topic(f"{name}/estimator")
+        self.telemetry = Telemetry(self)
+        """Raw autopilot messages: ``d1.telemetry("HIGHRES_IMU")``, ``.stream(name)``, ``.on(name, fn)``."""
+        self.params = Params(self)
+        """The autopilot's parameters: ``d1.params.get("MPC_XY_VEL_MAX")``, ``.set(name, value)``."""
 
-    # -- fresh data -----------------------------------------------------------------------------------
-    def _update(self, item: Received[Any]) -> None:
-        kind = item.key.rsplit("/", 1)[-1]
-        with self._cond:
-            if kind == "state" and isinstance(item.payload, wire.State):
-                self._state, self._state_mono = item.payload, time.monotonic()
-            elif kind == "pose" and isinstance(item.payload, wire.Pose):
-                self._pose, self._pose_mono = item.payload, time.monotonic()
-            elif kind == "events" and isinstance(item.payload, wire.Event):
-                self._events.append(item.payload)
-                del self._events[:-100]
-            self._cond.notify_all()
+    # -- input from the arena's client thread ---------------------------------------------------------
+    def _update(self, item: Any) -> None:
+        parts = item.key.split("/")
+        leaf, payload, now = parts[2], item.payload, time.monotonic()
+        if leaf == "state" and isinstance(payload, wire.State):
+            with self._cond:
+                self._state = payload
+                self._cond.notify_all()
+            self.state_topic.publish(Status.from_wire(payload, now))
+        elif leaf == "pose" and isinstance(payload, wire.Pose):
+            self.pose_topic.publish(payload)
+            with self._cond:
+                self._cond.notify_all()
+        elif leaf == "vision" and isinstance(payload, wire.Pose):
+            self.vision_topic.publish(payload)
+        elif leaf == "events" and isinstance(payload, wire.Event):
+            with self._cond:
+                self._history.append(payload)
+            self.event_topic.publish(payload)
+        elif leaf == "telemetry" and len(parts) > 3 and isinstance(payload, wire.Telemetry):
+            self.telemetry._publish(parts[3], payload)
+            if payload.msg in ("HIGHRES_IMU", "SCALED_IMU"):
+                self.imu_topic.publish(Imu.from_telemetry(payload, now))
+            elif payload.msg == "BATTERY_STATUS":
+                self.battery_topic.publish(Battery.from_telemetry(payload, now))
+            elif payload.msg == "ESTIMATOR_STATUS":
+                self.estimator_topic.publish(EstimatorStatus.from_telemetry(payload, now))
+        else:
+            self.arena._reject(item.key, f"unexpected {type(payload).__name__}")
 
+    def _subscriptions(self) -> list[str]:
+        base = f"arena/{self.name}"
+        return [f"{base}/{leaf}" for leaf in ("state", "pose", "vision", "events")] + [
+            keys.telemetry(self.name, m) for m in SENSOR_MESSAGES
+        ]
+
+    def _close(self) -> None:
+        for topic in (
+            self.pose_topic,
+            self.vision_topic,
+            self.state_topic,
+            self.event_topic,
+            self.imu_topic,
+            self.battery_topic,
+            self.estimator_topic,
+        ):
+            topic.close()
+        self.telemetry._close()
+
+    # -- readings -------------------------------------------------------------------------------------
     @property
     def state(self) -> wire.State | None:
-        """The latest :class:`~arena_common.core.wire.State` from the vehicle's gateway (None before any)."""
+        """The latest raw :class:`~arena_common.core.wire.State` (None before any); see :attr:`status`."""
         return self._state
+
+    @property
+    def status(self) -> Status | None:
+        """The latest state, typed (:class:`~arena_common.client.types.Status`; None before any)."""
+        return self.state_topic.latest
 
     @property
     def state_age(self) -> float:
         """Seconds since the last state arrived (inf before any)."""
-        return time.monotonic() - self._state_mono if self._state else math.inf
+        return self.state_topic.age
 
     @property
     def mocap(self) -> wire.Pose | None:
-        """The latest mocap pose in the arena frame, full rate (``arena/<drone>/pose``)."""
-        return self._pose
+        """The latest raw mocap pose in the arena frame, full rate (``arena/<drone>/pose``)."""
+        return self.pose_topic.latest
 
     @property
     def mocap_age(self) -> float:
         """Seconds since the last mocap pose arrived (inf before any)."""
-        return time.monotonic() - self._pose_mono if self._pose else math.inf
+        return self.pose_topic.age
 
     @property
-    def position(self) -> tuple[float, float, float] | None:
-        """North, east, down [m]: the mocap pose when fresh, else the autopilot's estimate."""
-        if self._pose is not None and self._pose.ok and self.mocap_age < 0.5:
-            return self._pose.p
-        return self._state.p if self._state else None
+    def mocap_pose(self) -> PoseReading | None:
+        """The motion-capture pose with its age; valid while tracked and younger than ``MOCAP_MAX_AGE``."""
+        pose = self.pose_topic.latest
+        if pose is None:
+            return None
+        age = time.monotonic() - self.pose_topic.received
+        problem = "" if pose.ok else "not tracked by the motion capture"
+        if not problem and age > MOCAP_MAX_AGE:
+            problem = f"stale: {age:.2f} s old"
+        return PoseReading(
+            "mocap", pose.t, self.pose_topic.received, pose.p, pose.q, pose.v if pose.vok else None,
+            not problem, problem,
+        )  # fmt: skip
 
     @property
-    def velocity(self) -> tuple[float, float, float] | None:
-        """NED velocity [m/s]: the autopilot's estimate, else the mocap finite difference."""
-        if self._state is not None and self._state.v is not None:
-            return self._state.v
-        return self._pose.v if self._pose is not None and self._pose.vok else None
+    def estimate(self) -> PoseReading | None:
+        """The autopilot's own position estimate with its age; not valid when the autopilot marks it so
+        (ESTIMATOR_STATUS), when the link is down or when the state is older than ``STATE_MAX_AGE``."""
+        s, status = self._state, self.state_topic.latest
+        if s is None or s.p is None or status is None:
+            return None
+        problem = ""
+        age = time.monotonic() - status.received
+        est = self.estimator_topic.latest
+        if not s.link:
+            problem = "no link to the autopilot"
+        elif age > STATE_MAX_AGE:
+            problem = f"stale: {age:.2f} s old"
+        elif est is not None and est.age <= ESTIMATOR_MAX_AGE and est.problem:
+            problem = est.problem
+        return PoseReading("estimate", s.t, status.received, s.p, s.q, s.v, not problem, problem)
+
+    def _source(self) -> PoseReading | None:
+        m = self.mocap_pose
+        if m is not None and m.valid:
+            return m
+        e = self.estimate
+        return e if e is not None and e.valid else None
+
+    @property
+    def position_source(self) -> str | None:
+        """Where :attr:`position` and :attr:`attitude` come from now: ``"mocap"``, ``"estimate"`` or None."""
+        src = self._source()
+        return src.source if src is not None else None
+
+    @property
+    def position(self) -> Vec3 | None:
+        """North, east, down [m]: the mocap pose while valid, else the autopilot's estimate while valid,
+        else None (see :attr:`position_source`, :attr:`mocap_pose`, :attr:`estimate`)."""
+        src = self._source()
+        return src.p if src is not None else None
 
     @property
     def attitude(self) -> tuple[float, float, float, float] | None:
-        """Quaternion (w, x, y, z), body FRD to arena NED."""
-        if self._pose is not None and self._pose.ok and self.mocap_age < 0.5:
-            return self._pose.q
-        return self._state.q if self._state else None
+        """Quaternion (w, x, y, z), body FRD to arena NED, from the same source as :attr:`position`."""
+        src = self._source()
+        return src.q if src is not None else None
+
+    @property
+    def velocity(self) -> Vec3 | None:
+        """NED velocity [m/s]: the autopilot's estimate while valid (mocap poses carry no velocity unless
+        the pipeline measured one), else the mocap pose's, else None."""
+        e = self.estimate
+        if e is not None and e.valid and e.v is not None:
+            return e.v
+        m = self.mocap_pose
+        return m.v if m is not None and m.valid else None
 
     @property
     def euler(self) -> tuple[float, float, float] | None:
@@ -127,30 +239,106 @@ class Vehicle:
 
     @property
     def armed(self) -> bool:
+        """Motors armed."""
         return bool(self._state and self._state.armed)
 
     @property
-    def mode(self) -> str:
-        return self._state.mode if self._state else "UNKNOWN"
+    def mode(self) -> FlightMode:
+        """The flight mode (:class:`FlightMode`; compares equal to PX4's names, ``"OFFBOARD"``…)."""
+        return FlightMode.parse(self._state.mode) if self._state else FlightMode.UNKNOWN
 
     @property
-    def landed(self) -> str:
-        return self._state.landed if self._state else "undefined"
+    def landed(self) -> LandedState:
+        """The landed state (:class:`LandedState`; compares equal to ``"on_ground"``…)."""
+        return LandedState.parse(self._state.landed) if self._state else LandedState.UNDEFINED
 
     @property
-    def battery(self) -> float | None:
-        return self._state.bat if self._state else None
+    def battery(self) -> Battery | None:
+        """The latest battery reading (BATTERY_STATUS, else the state's remaining and voltage)."""
+        b = self.battery_topic.latest
+        if b is not None:
+            return b
+        status = self.state_topic.latest
+        return Battery.from_status(status) if status is not None and status.battery is not None else None
+
+    @property
+    def imu(self) -> Imu | None:
+        """The latest IMU reading (body FRD; HIGHRES_IMU or SCALED_IMU) at the telemetry rate."""
+        return self.imu_topic.latest
+
+    @property
+    def estimator(self) -> EstimatorStatus | None:
+        """The latest estimator status (ESTIMATOR_STATUS)."""
+        return self.estimator_topic.latest
 
     @property
     def link(self) -> bool:
         """True while the gateway reports heartbeats and its state is fresh."""
-        return bool(self._state and self._state.link and self.state_age < 1.0)
+        return bool(self._state and self._state.link and self.state_age < STATE_MAX_AGE)
 
     def events(self) -> list[wire.Event]:
-        """The last (up to 100) events of this vehicle."""
+        """The last (up to 100) events of this vehicle (see :meth:`event_stream` for new ones)."""
         with self._cond:
-            return list(self._events)
+            return list(self._history)
 
+    # -- streams and callbacks ------------------------------------------------------------------------
+    def poses(self, timeout: float | None = None, capacity: int = 1024) -> Stream[wire.Pose]:
+        """Every new mocap pose (arena frame, full rate), in order; ``pose.t`` is its measurement time."""
+        return self.pose_topic.stream(capacity, timeout)
+
+    def vision(self, timeout: float | None = None, capacity: int = 1024) -> Stream[wire.Pose]:
+        """Every pose sent to the autopilot as vision (decimated), in order."""
+        return self.vision_topic.stream(capacity, timeout)
+
+    def states(self, timeout: float | None = None, capacity: int = 1024) -> Stream[Status]:
+        """Every new typed state, in order."""
+        return self.state_topic.stream(capacity, timeout)
+
+    def event_stream(self, timeout: float | None = None, capacity: int = 1024) -> Stream[wire.Event]:
+        """Every new event (mode and arming changes, failsafes, status texts…), in order."""
+        return self.event_topic.stream(capacity, timeout)
+
+    def imu_stream(self, timeout: float | None = None, capacity: int = 1024) -> Stream[Imu]:
+        """Every new IMU reading, in order."""
+        return self.imu_topic.stream(capacity, timeout)
+
+    def battery_stream(self, timeout: float | None = None, capacity: int = 1024) -> Stream[Battery]:
+        """Every new battery reading, in order."""
+        return self.battery_topic.stream(capacity, timeout)
+
+    def estimator_stream(self, timeout: float | None = None, capacity: int = 1024) -> Stream[EstimatorStatus]:
+        """Every new estimator status, in order."""
+        return self.estimator_topic.stream(capacity, timeout)
+
+    def on_pose(self, fn: Callable[[wire.Pose], object]) -> Callback:
+        """Call ``fn(pose)`` for every new mocap pose (on the arena's client thread: keep it short)."""
+        return self.pose_topic.on(fn)
+
+    def on_vision(self, fn: Callable[[wire.Pose], object]) -> Callback:
+        """Call ``fn(pose)`` for every pose sent as vision."""
+        return self.vision_topic.on(fn)
+
+    def on_state(self, fn: Callable[[Status], object]) -> Callback:
+        """Call ``fn(status)`` for every new state."""
+        return self.state_topic.on(fn)
+
+    def on_event(self, fn: Callable[[wire.Event], object]) -> Callback:
+        """Call ``fn(event)`` for every new event."""
+        return self.event_topic.on(fn)
+
+    def on_imu(self, fn: Callable[[Imu], object]) -> Callback:
+        """Call ``fn(imu)`` for every new IMU reading."""
+        return self.imu_topic.on(fn)
+
+    def on_battery(self, fn: Callable[[Battery], object]) -> Callback:
+        """Call ``fn(battery)`` for every new battery reading."""
+        return self.battery_topic.on(fn)
+
+    def on_estimator(self, fn: Callable[[EstimatorStatus], object]) -> Callback:
+        """Call ``fn(status)`` for every new estimator status."""
+        return self.estimator_topic.on(fn)
+
+    # -- waiting --------------------------------------------------------------------------------------
     def wait_until(self, predicate: Callable[[Vehicle], bool], timeout: float = 10.0, what: str = "") -> None:
         """Block until ``predicate(self)`` holds; :class:`CommandTimeout` after ``timeout`` seconds."""
         deadline = time.monotonic() + timeout
@@ -173,20 +361,20 @@ class Vehicle:
         with self._cond:
             self._cond.wait_for(lambda: self._state is not None and self._state.t >= t_ns, timeout)
 
-    # -- commands -----------------------------------------------------------------------------------
+    # -- commands -------------------------------------------------------------------------------------
     def command(self, op: str, timeout: float = 5.0, **args: Any) -> wire.CommandResult:
         """Send a raw command to the gateway; raise a typed error unless it succeeded.
 
         It returns once the vehicle's attributes show the command's effect (a state the gateway stamped
         after its answer arrived, within a second), so ``mode`` reads the mode just confirmed.
         """
-        cmd = wire.Command(op=op, args=args, src=self._arena.src, timeout=timeout, t=wire.now_ns())
-        res = self._arena.bus.request(keys.cmd(self.name), cmd, timeout)
+        cmd = wire.Command(op=op, args=args, src=self.arena.src, timeout=timeout, t=wire.now_ns())
+        res = self.arena.bus.request(keys.cmd(self.name), cmd, timeout)
         if res.ok:
             self._catch_up(res.t)
             return res
         text = f"{self.name}: {op} {res.result}: {res.reason}".rstrip(": ")
-        if res.result == "TIMEOUT" and not self._arena.is_alive(self.name):
+        if res.result == "TIMEOUT" and not self.arena.is_alive(self.name):
             raise VehicleNotPresent(
                 f"{self.name}: no gateway for this vehicle is alive on the bus",
                 result=res.result,
@@ -206,7 +394,7 @@ class Vehicle:
         """
         with self._cond:  # a fresh program may not have heard the vehicle's state yet
             self._cond.wait_for(lambda: self._state is not None, timeout=min(timeout, 2.0))
-        if self.mode == "OFFBOARD":
+        if self.mode == FlightMode.OFFBOARD:
             self.command("hold", timeout)
         self.command("arm", timeout)
         self.wait_until(lambda v: v.armed, timeout, "armed")
@@ -225,7 +413,7 @@ class Vehicle:
         self.command("takeoff", min(timeout, 10.0), height=float(height))
         self.wait_until(
             lambda v: (p := v.position) is not None and -p[2] >= height - tolerance,
-            timeout,
+            self.arena.clock.wall(timeout),
             f"height {height} m",
         )
 
@@ -233,15 +421,20 @@ class Vehicle:
         """Land where it is; with ``wait`` block until it is on the ground and disarmed."""
         self.command("land", min(timeout, 10.0))
         if wait:
-            self.wait_until(lambda v: v.landed == "on_ground" and not v.armed, timeout, "landed and disarmed")
+            self.wait_until(
+                lambda v: v.landed == LandedState.ON_GROUND and not v.armed,
+                self.arena.clock.wall(timeout),
+                "landed and disarmed",
+            )
 
     def hold(self, timeout: float = 5.0) -> None:
         """Hold position (the autopilot's loiter)."""
         self.command("hold", timeout)
 
     def set_mode(self, mode: str, timeout: float = 5.0) -> None:
-        """Switch flight mode by name (POSCTL, AUTO.LOITER, OFFBOARD…), confirmed from the heartbeat."""
-        self.command("mode", timeout, mode=mode)
+        """Switch flight mode by name or :class:`FlightMode` (POSCTL, AUTO.LOITER, OFFBOARD…), confirmed
+        from the heartbeat."""
+        self.command("mode", timeout, mode=str(mode))
 
     def goto(
         self,
@@ -251,18 +444,46 @@ class Vehicle:
         yaw: float | None = None,
         tolerance: float = 0.1,
         timeout: float = 30.0,
+        duration: float | None = None,
     ) -> None:
-        """Fly to a point of the arena (NED, metres) and wait until within ``tolerance``."""
-        args: dict[str, Any] = {"p": [float(north), float(east), float(down)]}
-        if yaw is not None:
-            args["yaw"] = float(yaw)
-        self.command("goto", min(timeout, 10.0), **args)
-        target = (north, east, down)
+        """Fly to a point of the arena (NED, metres) and wait until within ``tolerance``; the gateway then
+        holds it.
+
+        Without ``duration`` the gateway flies there at its own speed (``goto_speed``).  With ``duration``
+        (seconds of arena time) the vehicle follows a smooth minimum-jerk path that arrives then, streamed
+        by this program under the gateway's safety checks, before the gateway takes over the hold.
+        """
+        target = (float(north), float(east), float(down))
+        if duration is not None:
+            start = self.position
+            if start is None:
+                raise VehicleNotPresent(
+                    f"{self.name}: no position known; cannot plan a goto", drone=self.name
+                )
+            self.follow(Trajectory.min_jerk(start, target, duration, yaw=yaw))
+        else:
+            args: dict[str, Any] = {"p": list(target)}
+            if yaw is not None:
+                args["yaw"] = float(yaw)
+            self.command("goto", min(timeout, 10.0), **args)
         self.wait_until(
             lambda v: (p := v.position) is not None and math.dist(p, target) <= tolerance,
-            timeout,
+            self.arena.clock.wall(timeout),
             f"position {target}",
         )
+
+    def follow(self, trajectory: Trajectory, rate: float = 30.0) -> None:
+        """Fly ``trajectory`` (from its start, which should be near the vehicle) in an offboard block and
+        hold its end point (the gateway's hold) afterwards."""
+        problem = trajectory_problem(self, trajectory)
+        if problem is not None:  # before offboard is engaged
+            raise SafetyRefused(
+                f"{self.name}: trajectory refused: {problem}", result="REFUSED", drone=self.name
+            )
+        end = trajectory.sample(trajectory.duration)
+        with self.offboard(rate=rate) as ctl:
+            ctl.follow(trajectory)
+            ctl.handover(end.p, end.yaw)
 
     def offboard(self, rate: float = 20.0, lease: float = 0.5, engage: bool = True) -> OffboardStream:
         """A setpoint stream as a context manager (see :class:`OffboardStream`)."""
@@ -274,238 +495,15 @@ class Vehicle:
         return f"<Vehicle {self.name} {self.mode} {'armed' if self.armed else 'disarmed'} at {where}>"
 
 
-class OffboardStream:
-    """Streams the latest setpoint at a steady rate from its own thread, whatever the user's loop does.
+def __getattr__(name: str) -> Any:
+    # Arena and Swarm were defined in this module before the client was split by facet; programs that
+    # import them from here keep working.
+    if name == "Arena":
+        from arena_common.client.arena import Arena
 
-    Each setpoint carries a lease.  Leaving the block puts the vehicle in Hold (AUTO.LOITER) where it is,
-    as MAVSDK's ``offboard.stop()`` does, before the stream stops: a velocity setpoint does not coast on.
-    Only when the program dies do the leases lapse without that, and the autopilot's offboard-loss
-    failsafe (``COM_OBL_RC_ACT``: Land) takes over.  If Hold is refused, the block's exit raises
-    :class:`~arena_common.core.errors.CommandError` after stopping the stream (the failsafe then acts).
-    """
+        return Arena
+    if name == "Swarm":
+        from arena_common.client.swarm import Swarm
 
-    def __init__(self, vehicle: Vehicle, rate: float, lease: float, engage: bool) -> None:
-        if not 2.0 <= rate <= 100.0:
-            raise ValueError("offboard rate must be within 2..100 Hz")
-        self.vehicle = vehicle
-        self.period = 1.0 / rate
-        self.lease = lease
-        self.engage = engage
-        self._target: wire.Setpoint | None = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._pub = vehicle._arena.bus.stream_publisher(keys.setpoint(vehicle.name), wire.Setpoint)
-        self.sent = 0
-
-    def _set(self, **fields: Any) -> None:
-        self._target = wire.Setpoint(t=wire.now_ns(), lease=self.lease, src=self.vehicle._arena.src, **fields)
-
-    def position(
-        self,
-        north: float,
-        east: float,
-        down: float,
-        yaw: float | None = None,
-        velocity: Sequence[float] | None = None,
-    ) -> None:
-        """Hold a position (NED, m), optionally with yaw [rad] and a velocity feed-forward [m/s]."""
-        v = tuple(float(x) for x in velocity) if velocity is not None else None
-        self._set(p=(float(north), float(east), float(down)), v=v, yaw=yaw)
-
-    def velocity(
-        self, north: float, east: float, down: float, yaw: float | None = None, yaw_rate: float | None = None
-    ) -> None:
-        """Fly a velocity (NED, m/s) with a yaw [rad] or a yaw rate [rad/s]."""
-        self._set(v=(float(north), float(east), float(down)), yaw=yaw, yr=yaw_rate)
-
-    def _run(self) -> None:
-        next_t = time.monotonic()
-        while not self._stop.is_set():
-            target = self._target
-            if target is not None:
-                self._pub.put(target.replace(t=wire.now_ns()))
-                self.sent += 1
-            next_t += self.period
-            delay = next_t - time.monotonic()
-            if delay < -self.period:  # fell behind (suspended?): re-anchor rather than burst
-                next_t = time.monotonic()
-                delay = 0.0
-            self._stop.wait(max(delay, 0.0))
-
-    def __enter__(self) -> OffboardStream:
-        v = self.vehicle
-        if self._target is None:
-            p = v.position
-            if p is None:
-                raise VehicleNotPresent(
-                    f"{v.name}: no position known; cannot start an offboard stream", drone=v.name
-                )
-            e = v.euler
-            self.position(*p, yaw=e[2] if e else None)
-        self._thread = threading.Thread(target=self._run, name=f"offboard:{v.name}", daemon=True)
-        self._thread.start()
-        if self.engage:
-            try:
-                time.sleep(max(3 * self.period, 0.3))  # the autopilot needs a stream before OFFBOARD
-                v.set_mode("OFFBOARD")
-            except BaseException:
-                self.close()
-                raise
-        return self
-
-    def close(self) -> None:
-        """Stop streaming; the leases lapse."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
-        self._pub.close()
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        try:
-            if self.vehicle.mode == "OFFBOARD":
-                self.vehicle.hold()  # while our stream still runs: no gap for the failsafe to see
-        except CommandError:
-            if exc_type is None:
-                raise
-        finally:
-            self.close()
-
-
-class Swarm:
-    """Several vehicles acting together: run the same action on all and wait for every one."""
-
-    def __init__(self, vehicles: Iterable[Vehicle]) -> None:
-        self.vehicles = list(vehicles)
-
-    def run(self, action: Callable[[Vehicle], Any]) -> list[Any]:
-        """Run ``action(vehicle)`` on every vehicle at once; raise the first error after all finished."""
-        if not self.vehicles:
-            return []
-        with ThreadPoolExecutor(max_workers=len(self.vehicles)) as pool:
-            futures = [pool.submit(action, v) for v in self.vehicles]
-            results, errors = [], []
-            for v, f in zip(self.vehicles, futures, strict=True):
-                try:
-                    results.append(f.result())
-                except Exception as exc:
-                    errors.append((v.name, exc))
-        if errors:
-            first = errors[0][1]
-            names = ", ".join(f"{n}: {e}" for n, e in errors)
-            if isinstance(first, CommandError):
-                raise type(first)(f"swarm action failed for {names}", result=first.result) from first
-            raise first
-        return results
-
-    def arm(self) -> None:
-        self.run(lambda v: v.arm())
-
-    def takeoff(self, height: float = 1.0) -> None:
-        self.run(lambda v: v.takeoff(height))
-
-    def land(self) -> None:
-        self.run(lambda v: v.land())
-
-    def hold(self) -> None:
-        self.run(lambda v: v.hold())
-
-    def __iter__(self) -> Any:
-        return iter(self.vehicles)
-
-    def __len__(self) -> int:
-        return len(self.vehicles)
-
-
-class Arena:
-    """A connection to the arena's bus.  Use as a context manager (or call :meth:`close`).
-
-    ``config`` is a config file path or :class:`~arena_common.core.config.ArenaConfig` (its Zenoh section
-    says how to reach the bus); ``connect`` endpoints override it (``["tcp/192.168.1.20:7447"]``).
-    ``host`` names this computer in the config (default: the hostname).  The session is a client of the
-    router unless ``mode`` says otherwise.
-    """
-
-    def __init__(
-        self,
-        config: ArenaConfig | str | Path | None = None,
-        *,
-        connect: Sequence[str] = (),
-        mode: str | None = None,
-        bus: Bus | None = None,
-        name: str = "",
-        host: str | None = None,
-    ) -> None:
-        if isinstance(config, (str, Path)):
-            config = config_mod.load(config)
-        self.config = config
-        self.src = name or _src()
-        self._own_bus = bus is None
-        # A client of the router by default: the router knows every service's presence at once, while a
-        # peer learns it link by link; user programs gain nothing from direct links.
-        options = host_bus_options(
-            config, host_name(host), BusOptions(mode=mode or "client", connect=tuple(connect))
-        )
-        self.bus = bus or open_bus(config.zenoh if config else ZenohSpec(), options)
-        self._vehicles: dict[str, Vehicle] = {}
-        self._channel: Channel[Received[Any]] = Channel(4096, ring=True)
-        self._lock = threading.Lock()
-        self._closed = threading.Event()
-        self._thread = threading.Thread(target=self._pump, name="arena-client", daemon=True)
-        self._thread.start()
-
-    def _pump(self) -> None:
-        while not self._closed.is_set():
-            item = self._channel.get(0.2)
-            if item is None or item.payload is None:
-                continue
-            parts = item.key.split("/")
-            v = self._vehicles.get(parts[1]) if len(parts) > 2 else None
-            if v is not None:
-                v._update(item)
-
-    def vehicle(self, name: str) -> Vehicle:
-        """The :class:`Vehicle` object of ``name`` (one per name; created on first use)."""
-        with self._lock:
-            v = self._vehicles.get(name)
-            if v is None:
-                v = Vehicle(self, name)
-                self._vehicles[name] = v
-                for leaf in ("state", "pose", "events"):
-                    self.bus.subscribe(f"arena/{v.name}/{leaf}", channel=self._channel)
-            return v
-
-    def vehicles(self, timeout: float = 1.0) -> list[str]:
-        """Names of the vehicles whose gateway is alive on the bus right now."""
-        names = set()
-        for key in self.bus.alive(keys.ALIVE_ALL, timeout):
-            service = key.rsplit("/", 1)[-1]
-            if service.startswith("gateway."):
-                names.add(service[len("gateway.") :])
-        return sorted(names)
-
-    def is_alive(self, name: str) -> bool:
-        """True when a gateway for ``name`` holds its presence token."""
-        return bool(self.bus.alive(f"arena/sys/alive/*/gateway.{name}", 0.5))
-
-    def swarm(self, names: Iterable[str] | None = None) -> Swarm:
-        """A :class:`Swarm` of the named vehicles (default: every vehicle alive now)."""
-        return Swarm(self.vehicle(n) for n in (names if names is not None else self.vehicles()))
-
-    def estop(self, kill: bool = False, reason: str = "") -> None:
-        """Stop everything: every gateway lands its vehicle at once (or cuts the motors with ``kill``)."""
-        self.bus.put(keys.ESTOP, wire.Estop(t=wire.now_ns(), kill=kill, reason=reason, src=self.src))
-
-    def close(self) -> None:
-        """Stop the background thread and close the bus (if this object opened it)."""
-        self._closed.set()
-        self._thread.join(2.0)
-        if self._own_bus:
-            self.bus.close()
-
-    def __enter__(self) -> Arena:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        return Swarm
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

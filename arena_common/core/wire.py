@@ -455,6 +455,7 @@ _EVENT_KINDS = (
     "link",
     "setup",
     "estimator",
+    "clock",
     "info",
 )
 
@@ -489,6 +490,7 @@ COMMAND_OPS = (
     "ping",
     "start",
     "stop",
+    "time",
 )
 
 
@@ -542,6 +544,11 @@ class Setpoint(Payload, frozen=True):
     lease: Annotated[float, _float("How long it stays valid", unit="s", lo=0.05, hi=5.0)] = _always(0.5)
     p: Annotated[Vec3, _doc("Position north, east, down", unit="m")] | None = None
     v: Annotated[Vec3, _doc("Velocity (or feed-forward with p)", unit="m/s")] | None = None
+    a: Annotated[Vec3, _doc("Acceleration feed-forward (with p or v)", unit="m/s²")] | None = None
+    q: Annotated[Quat, _doc("Attitude w, x, y, z, body FRD to arena NED (with thrust; alone)")] | None = None
+    thrust: (
+        Annotated[float, _float("Collective thrust, 0 (none) to 1 (full), with q", lo=0.0, hi=1.0)] | None
+    ) = None
     yaw: Annotated[float, _float("Yaw", unit="rad")] | None = None
     yr: Annotated[float, _float("Yaw rate", unit="rad/s")] | None = None
     src: Annotated[Str, _doc("Who sends it")] = _always("")
@@ -549,6 +556,15 @@ class Setpoint(Payload, frozen=True):
     def check(self) -> tuple[str, str] | None:
         if problem := super().check():
             return problem
+        if self.q is not None or self.thrust is not None:
+            if self.q is None or self.thrust is None:
+                return (
+                    "q" if self.q is None else "thrust"
+                ), "an attitude setpoint needs q and thrust together"
+            for name in ("p", "v", "a", "yaw", "yr"):
+                if getattr(self, name) is not None:
+                    return name, "an attitude setpoint (q, thrust) takes no position, velocity or yaw"
+            return _quat_problem(self.q, "q")
         if self.p is None and self.v is None:
             return "p", "a setpoint needs a position (p) or a velocity (v)"
         if self.yaw is not None and self.yr is not None:
@@ -590,6 +606,39 @@ class Stats(Payload, frozen=True):
     vehicle: Annotated[Str, _doc("Vehicle served, if any")] = _always("")
 
 
+_CLOCK_STATES = ("reference", "ok", "uncertain", "unknown", "no_reference")
+
+
+@payload
+class ClockOffset(Payload, frozen=True):
+    """How far one host's wall clock is from the mocap host's, as one of its services measured it."""
+
+    SCHEMA = "ClockOffset"
+    DOC = (
+        "A host's wall-clock offset to the mocap host's clock (the time base of every pose), measured by "
+        "request and answer on arena/sys/time like NTP: the true offset lies within `off` ± `unc`."
+    )
+    t: Annotated[int, _int("Time of the estimate (this host's clock)", unit="ns")]
+    host: Annotated[Str, _doc("Host measured")]
+    service: Annotated[Str, _doc("Service that measured it")]
+    state: Annotated[
+        Str,
+        _doc(
+            "reference (this is the mocap host), ok, uncertain (beyond clock.max_uncertainty), unknown "
+            "(no recent answer), no_reference (nobody serves arena/sys/time)",
+            choices=_CLOCK_STATES,
+        ),
+    ]
+    ref: Annotated[Str, _doc("The reference (mocap) host")] = _always("")
+    off: Annotated[float, _float("Reference clock minus this host's clock", unit="s")] | None = None
+    unc: Annotated[float, _float("Bound of the offset's error", unit="s", lo=0.0)] | None = None
+    rtt: Annotated[float, _float("Round trip of the last exchange", unit="s", lo=0.0)] | None = None
+    n: Annotated[int, _int("Exchanges answered since start", lo=0)] = _always(0)
+    steps: Annotated[int, _int("Clock steps seen (an estimate contradicted, and started again)", lo=0)] = (
+        _always(0)
+    )
+
+
 # -- which type a sample carries -----------------------------------------------------------------------
 
 _KIND_TO_TYPE: dict[str, type[Payload]] = {
@@ -606,6 +655,8 @@ _KIND_TO_TYPE: dict[str, type[Payload]] = {
     "bodies": MocapPose,
     "cmd": Command,
     "rec": Command,
+    "clock": ClockOffset,
+    "time": Command,
 }
 
 

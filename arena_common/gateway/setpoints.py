@@ -5,14 +5,21 @@ The rules, in the order they apply:
 - A setpoint (:class:`~arena_common.core.wire.Setpoint`, arena NED) is refused — an Event of kind
   ``safety`` says why, and it never reaches the vehicle — when it does not decode (NaN, infinity…), when
   its position lies outside ``arena.safe_box()``, when its horizontal speed exceeds ``arena.max_speed``
-  or its vertical speed ``arena.max_climb``, when its yaw lies beyond ±``MAX_YAW`` rad (a yaw within is
-  wrapped to ±π) or its yaw rate beyond ``MAX_YAW_RATE``, or when it is a velocity that leads further out
-  of the safe volume while the vehicle already is outside it.
+  or its vertical speed ``arena.max_climb``, when its acceleration feed-forward exceeds ``MAX_ACCEL``,
+  when its yaw lies beyond ±``MAX_YAW`` rad (a yaw within is wrapped to ±π) or its yaw rate beyond
+  ``MAX_YAW_RATE``, or when it is a velocity that leads further out of the safe volume while the vehicle
+  already is outside it.  An attitude setpoint (``q`` and ``thrust``) steers no position the gateway
+  could check, so it is refused when it tilts more than ``MAX_TILT`` or while the vehicle's position is
+  unknown or outside the safe volume; the moment the vehicle leaves the safe volume under an attitude
+  stream, or its velocity would take it out within ``ATTITUDE_LOOKAHEAD`` s, the stream stops, the
+  forwarder latches and PX4 is commanded to Hold (AUTO.LOITER) at once.
 - An accepted setpoint is sent at once as SET_POSITION_TARGET_LOCAL_NED (MAV_FRAME_LOCAL_NED, type mask
-  from the fields given) and repeated at ``rate`` Hz while its lease runs (``lease`` s from its arrival,
-  renewed by every accepted setpoint).  When the lease expires, streaming stops (an Event says so): the
-  silence is what lets PX4 detect offboard loss and take its COM_OBL_RC_ACT action.  The gateway never
-  streams on its own to keep a vehicle in offboard.
+  from the fields given: position, velocity, acceleration feed-forward, yaw or yaw rate; an attitude one
+  as SET_ATTITUDE_TARGET: quaternion and thrust, body rates ignored) and repeated at
+  ``rate`` Hz while its lease runs (``lease`` s from its arrival, renewed by every accepted setpoint).
+  When the lease expires, streaming stops (an Event says so): the silence is what lets PX4 detect
+  offboard loss and take its COM_OBL_RC_ACT action.  The gateway never streams on its own to keep a
+  vehicle in offboard.
 - Whenever the vehicle leaves OFFBOARD (a failsafe, a land, hold or mode command, a ground station, an
   estop), the forwarder *latches*: it stops sending and holds user setpoints back, so that neither PX4
   nor a late user stream can re-engage offboard by itself.  Only an explicit ``mode OFFBOARD`` or
@@ -29,6 +36,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from arena_common.bus.session import Subscription
 from arena_common.core import wire
@@ -38,12 +46,25 @@ from arena_common.mavlink import px4
 from arena_common.mavlink.link import MavlinkLink
 from arena_common.runtime.service import Stats
 
-__all__ = ["MAX_YAW", "MAX_YAW_RATE", "SetpointForwarder", "type_mask", "wrap_yaw", "yaw_problem"]
+__all__ = [
+    "ATTITUDE_LOOKAHEAD",
+    "MAX_ACCEL",
+    "MAX_TILT",
+    "MAX_YAW",
+    "MAX_YAW_RATE",
+    "SetpointForwarder",
+    "type_mask",
+    "wrap_yaw",
+    "yaw_problem",
+]
 
 Vec3 = tuple[float, float, float]
 
 MAX_YAW = 1000.0  # rad: a larger yaw is a mistake, not a heading (it would not even fit MAVLink's float32)
 MAX_YAW_RATE = 2.0 * math.pi  # rad/s
+MAX_ACCEL = 5.0  # m/s², norm of an acceleration feed-forward: a trajectory's, not an aerobatic one
+ATTITUDE_LOOKAHEAD = 0.5  # s: an attitude stream stops where the vehicle's velocity takes it out this soon
+MAX_TILT = math.radians(35.0)  # rad, of an attitude setpoint from level: PX4's default MPC_TILTMAX_AIR
 
 
 def yaw_problem(yaw: float | None, yr: float | None = None) -> str | None:
@@ -61,8 +82,10 @@ def wrap_yaw(yaw: float | None) -> float | None:
 
 
 def type_mask(sp: wire.Setpoint) -> int:
-    """SET_POSITION_TARGET_LOCAL_NED type_mask for the fields a setpoint gives (acceleration ignored)."""
-    mask = px4.TYPEMASK_ACCELERATION
+    """SET_POSITION_TARGET_LOCAL_NED type_mask for the fields a setpoint gives."""
+    mask = 0
+    if sp.a is None:
+        mask |= px4.TYPEMASK_ACCELERATION
     if sp.p is None:
         mask |= px4.TYPEMASK_POSITION
     if sp.v is None:
@@ -84,6 +107,9 @@ class _Stream:
     mask: int
     expires: float
     goal: Vec3 | None = None
+    a: Vec3 | None = None
+    q: tuple[float, float, float, float] | None = None  # an attitude stream (with thrust)
+    thrust: float = 0.0
 
 
 def outside(p: Vec3, box: tuple[tuple[float, float], tuple[float, float], tuple[float, float]]) -> str | None:
@@ -111,6 +137,7 @@ class SetpointForwarder:
         goto_speed: float = 1.0,
         goto_climb: float = 0.5,
         position: Callable[[], Vec3 | None] = lambda: None,
+        velocity: Callable[[], Vec3 | None] = lambda: None,
         stats: Stats | None = None,
     ) -> None:
         self.link = link
@@ -124,6 +151,7 @@ class SetpointForwarder:
         self.goto_speed = min(goto_speed, arena.max_speed)
         self.goto_climb = min(goto_climb, arena.max_climb)
         self.position = position
+        self.velocity = velocity
         self.stats = stats or Stats()
         self._lock = threading.RLock()
         self._stream: _Stream | None = None
@@ -138,9 +166,11 @@ class SetpointForwarder:
     # -- rules ---------------------------------------------------------------------------------------
     def check(self, sp: wire.Setpoint) -> str | None:
         """Why the setpoint must not reach the vehicle, or None."""
-        values = [*(sp.p or ()), *(sp.v or ()), sp.yaw or 0.0, sp.yr or 0.0]
-        if not all(math.isfinite(x) for x in values):
+        values = [*(sp.p or ()), *(sp.v or ()), *(sp.a or ()), *(sp.q or ()), sp.yaw or 0.0, sp.yr or 0.0]
+        if not all(math.isfinite(x) for x in values) or not math.isfinite(sp.thrust or 0.0):
             return "not a finite number"
+        if sp.q is not None:
+            return self._attitude_problem(sp.q, sp.thrust)
         problem = yaw_problem(sp.yaw, sp.yr)
         if problem:
             return problem
@@ -148,6 +178,9 @@ class SetpointForwarder:
             where = outside(sp.p, self.box)
             if where:
                 return f"position outside the safe volume: {where}"
+        if sp.a is not None and math.sqrt(sum(x * x for x in sp.a)) > MAX_ACCEL + 1e-9:
+            norm = math.sqrt(sum(x * x for x in sp.a))
+            return f"acceleration feed-forward {norm:.2f} m/s² above {MAX_ACCEL:.1f} m/s²"
         if sp.v is not None:
             vn, ve, vd = sp.v
             speed = math.hypot(vn, ve)
@@ -161,6 +194,40 @@ class SetpointForwarder:
                     lo, hi = self.box[i]
                     if (pos[i] < lo and sp.v[i] < 0) or (pos[i] > hi and sp.v[i] > 0):
                         return f"velocity leads further out of the safe volume ({axis})"
+        return None
+
+    def _attitude_problem(self, q: tuple[float, float, float, float], thrust: float | None) -> str | None:
+        w, x, y, z = q
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        if abs(n - 1.0) > 1e-3 or thrust is None or not 0.0 <= thrust <= 1.0:
+            return "an attitude setpoint needs a unit quaternion and a thrust in 0..1"
+        # Tilt: the angle between the body's down axis and the world's (R[2][2] = cos tilt).
+        cos_tilt = (1.0 - 2.0 * (x * x + y * y)) / (n * n)
+        tilt = math.acos(max(-1.0, min(1.0, cos_tilt)))
+        if tilt > MAX_TILT + 1e-9:
+            return (
+                f"attitude tilted {math.degrees(tilt):.1f}° from level, above {math.degrees(MAX_TILT):.0f}°"
+            )
+        where = self._attitude_outside()
+        if where:
+            return f"attitude setpoints only inside the safe volume: {where}"
+        return None
+
+    def _attitude_outside(self) -> str | None:
+        """Why the vehicle is (or, at its velocity, within ``ATTITUDE_LOOKAHEAD`` s will be) out of the safe
+        volume, or its position is unknown; None while an attitude stream may go on."""
+        pos = self.position()
+        if pos is None:
+            return "the vehicle's position is unknown"
+        where = outside(pos, self.box)
+        if where:
+            return f"the vehicle is at {where}"
+        vel = self.velocity()
+        if vel is not None and all(math.isfinite(x) for x in vel):
+            ahead = tuple(p + ATTITUDE_LOOKAHEAD * v for p, v in zip(pos, vel, strict=True))
+            where = outside((ahead[0], ahead[1], ahead[2]), self.box)
+            if where:
+                return f"the vehicle heads out of it within {ATTITUDE_LOOKAHEAD:.1f} s ({where})"
         return None
 
     def refuse(self, reason: str) -> None:
@@ -180,7 +247,18 @@ class SetpointForwarder:
         with self._lock:
             if self._stream is not None and self._stream.source == "goto":
                 self.events.emit("info", "user setpoints take over from goto", 6)
-            self._stream = _Stream("user", sp.p, sp.v, wrap_yaw(sp.yaw), sp.yr, type_mask(sp), now + sp.lease)
+            self._stream = _Stream(
+                "user",
+                sp.p,
+                sp.v,
+                wrap_yaw(sp.yaw),
+                sp.yr,
+                type_mask(sp),
+                now + sp.lease,
+                a=sp.a,
+                q=sp.q,
+                thrust=sp.thrust or 0.0,
+            )
             if self._latched is not None:
                 self.events.emit(
                     "safety",
@@ -258,10 +336,6 @@ class SetpointForwarder:
         now = time.monotonic() if now is None else now
         return self.streaming(now) and now - self._since >= self.prestream
 
-    def goto_goal(self) -> Vec3 | None:
-        s = self._stream
-        return s.goal if s is not None and s.source == "goto" else None
-
     # -- output --------------------------------------------------------------------------------------
     def tick(self, now: float | None = None) -> float:
         """Expire leases, move the goto carrot, send when due; seconds until the next tick is needed."""
@@ -285,6 +359,21 @@ class SetpointForwarder:
                 return self.period
             if s.goal is not None and s.p is not None:
                 s.p = _toward(s.p, s.goal, self.goto_speed * dt, self.goto_climb * dt)
+            if s.q is not None:
+                where = self._attitude_outside()
+                if where:
+                    self._stream = None
+                    self._since = math.inf
+                    self._latched = f"attitude stream leaving the safe volume ({where})"
+                    self._hold_now()
+                    self.events.emit(
+                        "safety",
+                        f"attitude stream stopped: leaving the safe volume ({where}); "
+                        "commanded Hold (AUTO.LOITER)",
+                        3,
+                        reason=where,
+                    )
+                    return self.period
             left = self._last_send + self.period - now
             if left > 0:
                 return min(left, s.expires - now + 1e-3)
@@ -295,24 +384,54 @@ class SetpointForwarder:
         s = self._stream
         if s is None:
             return
-        p = s.p or (0.0, 0.0, 0.0)
-        v = s.v or (0.0, 0.0, 0.0)
-        msg = self.link.mav.set_position_target_local_ned_encode(
-            int((now - self._t0) * 1000) & 0xFFFFFFFF,
-            self.target_system,
-            px4.MAV_COMP_ID_AUTOPILOT1,
-            px4.MAV_FRAME_LOCAL_NED,
-            s.mask,
-            p[0], p[1], p[2], v[0], v[1], v[2], 0.0, 0.0, 0.0,
-            s.yaw if s.yaw is not None else 0.0,
-            s.yr if s.yr is not None else 0.0,
-        )  # fmt: skip
+        if s.q is not None:
+            msg = self.link.mav.set_attitude_target_encode(
+                int((now - self._t0) * 1000) & 0xFFFFFFFF,
+                self.target_system,
+                px4.MAV_COMP_ID_AUTOPILOT1,
+                px4.ATTITUDE_TARGET_BODY_RATES_IGNORE,
+                list(s.q), 0.0, 0.0, 0.0, s.thrust,
+            )  # fmt: skip
+        else:
+            msg = self._position_target(now, s)
         if self.link.send(msg):
             if self._since == math.inf or now - self._last_send > 3 * self.period:
                 self._since = now  # a new continuous stream begins
             self._last_send = now
             self.sent += 1
             self.stats.count("setpoints")
+
+    def _hold_now(self) -> None:
+        """Ask PX4 for Hold at once (DO_SET_MODE AUTO.LOITER, twice against a lost packet), without
+        waiting for its answer: an attitude stream that left the room must not coast until PX4's
+        offboard-loss timeout."""
+        msg = self.link.mav.command_long_encode(
+            self.target_system,
+            px4.MAV_COMP_ID_AUTOPILOT1,
+            px4.MAV_CMD_DO_SET_MODE,
+            0,
+            px4.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            px4.MAIN_AUTO,
+            px4.AUTO_LOITER,
+            0, 0, 0, 0,
+        )  # fmt: skip
+        for _ in range(2):
+            self.link.send(msg)
+
+    def _position_target(self, now: float, s: _Stream) -> Any:
+        p = s.p or (0.0, 0.0, 0.0)
+        v = s.v or (0.0, 0.0, 0.0)
+        a = s.a or (0.0, 0.0, 0.0)
+        return self.link.mav.set_position_target_local_ned_encode(
+            int((now - self._t0) * 1000) & 0xFFFFFFFF,
+            self.target_system,
+            px4.MAV_COMP_ID_AUTOPILOT1,
+            px4.MAV_FRAME_LOCAL_NED,
+            s.mask,
+            p[0], p[1], p[2], v[0], v[1], v[2], a[0], a[1], a[2],
+            s.yaw if s.yaw is not None else 0.0,
+            s.yr if s.yr is not None else 0.0,
+        )  # fmt: skip
 
     def run(
         self, sub: Subscription, stop: threading.Event, on_error: Callable[[str, BaseException], None]

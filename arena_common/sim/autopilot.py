@@ -59,6 +59,7 @@ from pymavlink import mavutil
 
 from arena_common.geometry.quat import quat_from_euler, quat_rotate, quat_yaw
 from arena_common.mavlink import px4
+from arena_common.mavlink.link import MavlinkLinkError, parse_serial
 from arena_common.mavlink.px4 import ParamValue
 from arena_common.mavlink.signing import PX4_UNSIGNED, LinkSigning, SigningKey
 from arena_common.sim.base import MapProjection, SimAutopilotError, TruePose, Vec3
@@ -159,10 +160,18 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
             self.clock.now_ns(), self._start, quat_from_euler(0, 0, yaw), (0.0, 0.0, 0.0)
         )
         try:
+            device, extra = connection, {}
+            if connection.startswith("serial:"):  # the gateway's spelling: serial:DEVICE[:BAUD]
+                device, baud = parse_serial(connection[len("serial:") :], connection)
+                extra = {"baud": baud}
             self.conn = mavutil.mavlink_connection(
-                connection, source_system=self.system_id, source_component=self.COMPONENT_ID, dialect="common"
+                device,
+                source_system=self.system_id,
+                source_component=self.COMPONENT_ID,
+                dialect="common",
+                **extra,
             )
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, MavlinkLinkError) as exc:
             raise SimAutopilotError(f"cannot open MAVLink connection {connection!r}: {exc}") from exc
         if not type(self.conn.mav).__module__.startswith("pymavlink.dialects.v20."):
             self.conn.close()
@@ -586,6 +595,7 @@ SimAutopilot._handlers = {
     21: SimAutopilot._on_param_request_list,
     20: SimAutopilot._on_param_request_read,
     23: SimAutopilot._on_param_set,
+    82: SimAutopilot._on_set_attitude_target,
     84: SimAutopilot._on_set_position_target,
     86: SimAutopilot._on_set_position_target_global,
     331: SimAutopilot._on_odometry,

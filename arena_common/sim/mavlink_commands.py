@@ -386,6 +386,23 @@ class CommandsMixin(AutopilotState):
         )
         self._setpoint_from(pos, vel, acc, m, msg.yaw, msg.yaw_rate, "SET_POSITION_TARGET_GLOBAL_INT", t)
 
+    def _on_set_attitude_target(self, msg: Any, t: float) -> None:
+        """SET_ATTITUDE_TARGET: an attitude and a normalised thrust (body rates are not simulated)."""
+        R = px4
+        if not self._addressed(msg.target_system, msg.target_component, True):
+            return
+        m = int(msg.type_mask)
+        if m & R.ATTITUDE_TARGET_ATTITUDE_IGNORE or m & R.ATTITUDE_TARGET_THROTTLE_IGNORE:
+            self._frame_text(t, "SET_ATTITUDE_TARGET without attitude or thrust not simulated")
+            return
+        q = tuple(float(c) for c in msg.q)
+        n = math.sqrt(sum(c * c for c in q))
+        if not all(finite(c) for c in q) or not finite(msg.thrust) or abs(n - 1.0) > 0.01:
+            self._frame_text(t, "SET_ATTITUDE_TARGET invalid")
+            return
+        w, x, y, z = q
+        self._take_setpoint(Setpoint(attitude=(w, x, y, z), thrust=float(msg.thrust)), t)
+
     def _setpoint_from(
         self,
         pos: tuple[float, float, float],

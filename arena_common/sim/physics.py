@@ -158,7 +158,9 @@ class Setpoint:
 
     A finite position drives the position loop (finite velocity/acceleration add as feed-forward);
     a finite velocity without position drives the velocity loop; acceleration alone is passed on.
-    ``yaw`` NaN keeps the current heading unless ``yaw_rate`` is finite.
+    ``yaw`` NaN keeps the current heading unless ``yaw_rate`` is finite.  An ``attitude`` (with
+    ``thrust``, normalised 0..1) bypasses the position and velocity loops, as PX4's
+    ``vehicle_attitude_setpoint`` from SET_ATTITUDE_TARGET does.
     """
 
     position: Vec3 = (NAN, NAN, NAN)
@@ -166,6 +168,8 @@ class Setpoint:
     acceleration: Vec3 = (NAN, NAN, NAN)
     yaw: float = NAN
     yaw_rate: float = NAN
+    attitude: Quat | None = None
+    thrust: float = NAN
 
     @classmethod
     def hold(cls, position: Vec3, yaw: float) -> Setpoint:
@@ -378,6 +382,13 @@ class Controller:
     ) -> None:
         """Position/velocity loops → attitude and thrust setpoints (``self.att_sp``, ``self.throttle_sp``)."""
         g = self.gains
+        if sp.attitude is not None:  # attitude and thrust given: nothing for the outer loops to do
+            self.att_sp = _unit(sp.attitude)
+            self.throttle_sp = _clamp(sp.thrust, 0.0, g.thr_max) if sp.thrust == sp.thrust else 0.0
+            self.vel_sp = (NAN, NAN, NAN)
+            self.yaw_rate_ff = 0.0
+            self.saturated_z = False
+            return
         pos, vel = est.out_position, est.out_velocity
         vsp = [NAN, NAN, NAN]
         kp = (g.xy_p, g.xy_p, g.z_p)
@@ -668,6 +679,8 @@ class QuadSim:
         sp = self.setpoint
         z_est = self.estimator.out_position[2]
         pz, vz = sp.position[2], sp.velocity[2]
+        if sp.attitude is not None:  # thrust above the hover estimate lifts off
+            return sp.thrust == sp.thrust and sp.thrust > self.controller.hover_est
         return (pz == pz and pz < z_est - 0.2) or (pz != pz and vz == vz and vz < -0.3)
 
     def true_state(self) -> tuple[Vec3, Quat, Vec3, Vec3]:

@@ -52,11 +52,12 @@ REQUESTABLE: Final = frozenset({*STREAMS, 148, 49})
 
 FLIGHT_SW_VERSION: Final = (1 << 24) | (16 << 16) | (0 << 8) | 255  # 1.16.0 official, as the SITL build
 #: What the simulated vehicle implements (PX4 v1.16 SITL advertises 59647: also MISSION_FLOAT, PARAM_FLOAT,
-#: FTP, SET_ATTITUDE_TARGET, MISSION_FENCE, MISSION_RALLY, which the simulation does not do).
+#: FTP, MISSION_FENCE, MISSION_RALLY, which the simulation does not do).
 CAPABILITIES: Final = (
     4  # MISSION_INT
     | 8  # COMMAND_INT
     | 16  # PARAM_ENCODE_BYTEWISE
+    | 64  # SET_ATTITUDE_TARGET (attitude and thrust; body rates not simulated)
     | 128  # SET_POSITION_TARGET_LOCAL_NED
     | 256  # SET_POSITION_TARGET_GLOBAL_INT (PX4 implements it without advertising it)
     | 2048  # FLIGHT_TERMINATION
