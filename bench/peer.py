@@ -42,7 +42,8 @@ from bench.harness import (
     wait_port,
     wait_until,
 )
-from bench.pipeline import HOST, RunSettings, _env, odometry_of, router_port, write_config
+from bench.matching import odometry_of
+from bench.pipeline import HOST, RunSettings, _env, router_port, write_config
 
 __all__ = ["mavproxy_command", "run_peers"]
 

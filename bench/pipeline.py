@@ -7,13 +7,7 @@ design at 180 or 360 Hz, every gateway sending MAVLink to a UDP port of the harn
 publishes each vehicle's true pose (a circle, 60 Hz), joins the NatNet multicast group itself and reads
 every vehicle's MAVLink socket, all with kernel receive stamps (:mod:`bench.harness`).
 
-Matching an ODOMETRY to its frame: ODOMETRY carries no frame number, but its ``time_usec`` is the pose's
-measurement time, the frame's camera mid-exposure mapped onto the local clock by the ingest, so
-``time_usec·1000 − mid_exposure`` is one constant (the clock offset) for the right frame and differs by
-whole frame periods for the others.  The constant is the mode of that difference over every frame whose
-position equals the ODOMETRY's (float32, bit for bit); each ODOMETRY is then assigned the frame with that
-position whose difference is nearest the constant.  A position no frame had is a *mismatch* (wrong data),
-a frame with no ODOMETRY is *lost*.
+How each ODOMETRY is matched to its frame, and what is lost: :mod:`bench.matching`.
 
 **Floors.** The same topology with :mod:`bench.floor` processes that only move bytes (of the
 arena payloads' sizes), over Zenoh with the arena's settings, or over UDP; messages carry their frame
@@ -22,27 +16,20 @@ number, so matching is exact.
 
 from __future__ import annotations
 
-import collections
-import itertools
 import math
 import os
 import random
-import struct
-import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import msgpack
-
 from arena_common.bus.session import Bus, open_bus
-from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.config import load as load_config
-from arena_common.geometry.frames import FrameTransform, quat_from_yaw
 from arena_common.mocap import natnet
+from bench.feeds import StatsWatcher, TruthFeeder
 from bench.harness import (
     BenchError,
     Collector,
@@ -54,30 +41,30 @@ from bench.harness import (
     wait_port,
     wait_until,
 )
+from bench.matching import (
+    NATNET_VERSION,
+    VISION_RATE,
+    HopWatcher,
+    analyze_arena,
+    analyze_floor,
+    decode_frames,
+    hop_breakdown,
+    odometry_of,
+    payload_sizes,
+)
 
 __all__ = [
     "CHAINS",
-    "ODOMETRY_ID",
     "PointResult",
     "RunSettings",
-    "analyze_arena",
-    "analyze_floor",
-    "mavlink_frame",
-    "payload_sizes",
     "run_arena",
     "run_floor",
     "write_config",
 ]
 
-ODOMETRY_ID = 331
-VISION_RATE = 400.0  # Hz: above the mocap rate, so the decimator passes every pose
 # The arena's chains, by where the vision is decimated ([pipeline] decimate).
 CHAINS = {"downsampler": "arena", "transform": "arena-td"}
-TRUTH_RATE = 60.0  # Hz per vehicle
-NATNET_VERSION = "3.1"
 HOST = "bench"
-_ODO_HEAD = struct.Struct("<Qfff")
-_F32 = struct.Struct("<fff")
 FLOOR_PREFIX = "bench/floor"
 
 
@@ -190,441 +177,6 @@ def socket_kind_tcp() -> int:
 
 def router_port(cfg: ArenaConfig) -> int:
     return int(cfg.zenoh.router_listen[0].rsplit(":", 1)[1])
-
-
-# -- wire sizes ----------------------------------------------------------------------------------------------
-
-
-def _example_frame(n_bodies: int) -> natnet.Frame:
-    bodies = tuple(
-        natnet.RigidBody(i + 1, (0.1 * i, 1.0, -0.2 * i), (0.0, 0.38268343, 0.0, 0.92387953), 0.0002, True, 1)
-        for i in range(n_bodies)
-    )
-    return natnet.Frame(
-        frame_number=123456,
-        rigid_bodies=bodies,
-        timestamp=1234.5,
-        cam_mid_exposure=10**12,
-        data_received=10**12 + 45700,
-        transmit=10**12 + 53800,
-    )
-
-
-def payload_sizes(n_bodies: int) -> dict[str, int]:
-    """Bytes of what each hop of the arena carries for ``n_bodies`` (the floors send the same sizes)."""
-    from services.mocap_ingest import encode_pose
-
-    frame = natnet.encode_frame(_example_frame(n_bodies), natnet.Version.parse(NATNET_VERSION))
-    body = _example_frame(1).rigid_bodies[0]
-    mocap = encode_pose(time.time_ns(), 123456, body, True, "d1", 5_380_000, 1234.5, "echo", time.time_ns())
-    now = time.time_ns()
-    pose = wire.Pose(
-        t=now,
-        p=(1.234567, -0.7654321, -1.1234567),
-        q=(0.92387953, 0.0, 0.0, 0.38268343),
-        ok=True,
-        fn=123456,
-        v=(0.1234567, 0.2345678, -0.0123456),
-        w=(0.01, -0.02, 0.3),
-        vok=True,
-        tp=now,
-    ).encode()
-    return {"natnet": len(frame), "mocap": len(mocap), "pose": len(pose), "odometry": _odometry_size()}
-
-
-def _odometry_size() -> int:
-    from arena_common.mavlink import px4
-    from arena_common.mavlink.link import mavlink2
-
-    mav = mavlink2.MAVLink(None, srcSystem=245, srcComponent=191)
-    args = px4.odometry_args(
-        time.time_ns() // 1000, (1.2, -0.7, -1.1), (0.92, 0.0, 0.0, 0.39), (0.1, 0.2, 0.0)
-    )
-    return len(mav.odometry_encode(**args).pack(mav))
-
-
-# -- MAVLink parsing (only what matching needs) --------------------------------------------------------------
-
-
-def mavlink_frame(data: bytes) -> tuple[int, bytes] | None:
-    """``(message id, payload)`` of the first MAVLink frame of a datagram (v2 payload zero-padded)."""
-    if len(data) >= 12 and data[0] == 0xFD:
-        n = data[1]
-        msgid = data[7] | (data[8] << 8) | (data[9] << 16)
-        return msgid, data[10 : 10 + n] + bytes(max(0, 255 - n))
-    if len(data) >= 8 and data[0] == 0xFE:
-        n = data[1]
-        return data[5], data[6 : 6 + n]
-    return None
-
-
-def odometry_of(data: bytes) -> tuple[int, tuple[float, float, float]] | None:
-    """``(time_usec, (x, y, z))`` of an ODOMETRY datagram, ``None`` for any other message."""
-    parsed = mavlink_frame(data)
-    if parsed is None or parsed[0] != ODOMETRY_ID:
-        return None
-    usec, x, y, z = _ODO_HEAD.unpack_from(parsed[1])
-    return usec, (x, y, z)
-
-
-def _f32(p: Sequence[float]) -> tuple[float, float, float]:
-    x, y, z = _F32.unpack(_F32.pack(*p))
-    return x, y, z
-
-
-# -- analysis ------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class _FrameInfo:
-    fn: int
-    stamp: int
-    mid_ns: int
-    positions: dict[int, tuple[float, float, float] | None]  # vehicle index → NED float32 (None: untracked)
-
-
-def decode_frames(
-    records: Sequence[tuple[int, bytes]],
-    body_to_vehicle: Mapping[int, int],
-    transform: FrameTransform,
-    version: natnet.Version,
-    tick_frequency: int,
-) -> list[_FrameInfo]:
-    """The harness's copy of every NatNet frame: number, stamp, mid-exposure and each vehicle's position."""
-    out: list[_FrameInfo] = []
-    for stamp, data in records:
-        try:
-            msg_id, payload = natnet.split_packet(data)
-            if msg_id != natnet.MessageId.FRAMEOFDATA:
-                continue
-            frame = natnet.decode_frame(payload, version)
-        except natnet.NatNetError:
-            continue
-        mid = frame.cam_mid_exposure
-        mid_ns = mid * 1_000_000_000 // tick_frequency if mid is not None else 0
-        positions: dict[int, tuple[float, float, float] | None] = {}
-        for body in frame.rigid_bodies:
-            v = body_to_vehicle.get(body.id)
-            if v is None:
-                continue
-            positions[v] = _f32(transform.position(body.pos)) if body.tracking_valid else None
-        out.append(_FrameInfo(frame.frame_number, stamp, mid_ns, positions))
-    return out
-
-
-def designed_outputs(frames: Sequence[_FrameInfo], vehicle: int, first: int, vision_rate: float) -> set[int]:
-    """Indices of the frames the downsampler's decimator passes for ``vehicle`` when it starts at ``first``.
-
-    The downsampler's own :class:`~arena_common.geometry.filters.TimeDecimator` fed with the frames' mid-exposure
-    times (its input times up to a constant clock offset), so what it skips is a drop by design.
-    """
-    from arena_common.geometry.filters import TimeDecimator
-
-    dec = TimeDecimator(vision_rate)
-    out: set[int] = set()
-    for k in range(first, len(frames)):
-        if frames[k].positions.get(vehicle) is not None and dec.offer(frames[k].mid_ns):
-            out.add(k)
-    return out
-
-
-def analyze_arena(
-    frames: Sequence[_FrameInfo],
-    outputs: Mapping[int, Sequence[tuple[int, bytes]]],
-    t0: int,
-    t1: int,
-    rate: float,
-    vision_rate: float = VISION_RATE,
-) -> dict[str, Any]:
-    """Latencies (ns) and losses of the frames stamped within ``[t0, t1]``.
-
-    ``expected`` counts the frames the decimator passes by design (every tracked frame when the vision
-    rate is above the mocap rate); ``lost`` is how many fewer poses arrived (a pose the decimator took in
-    place of a lost neighbour counts as delivered), ``designed_drops`` the frames it skips by design.
-    """
-    period = 1e9 / rate
-    latencies: list[int] = []
-    expected = delivered = mismatched = duplicates = unmatched_time = designed = substituted = 0
-    residuals: list[int] = []
-    per_vehicle: dict[int, dict[str, int]] = {}
-    first_vehicle: list[tuple[int, int, int]] = []  # (frame number, frame stamp, ODOMETRY stamp) of vehicle 0
-    in_window_idx = [k for k, f in enumerate(frames) if t0 <= f.stamp <= t1]
-    for v, records in outputs.items():
-        index: dict[tuple[float, float, float], list[int]] = collections.defaultdict(list)
-        for k, f in enumerate(frames):
-            p = f.positions.get(v)
-            if p is not None:
-                index[p].append(k)
-        odos = [(stamp, od) for stamp, data in records if (od := odometry_of(data)) is not None]
-        # The clock offset: the mode of time_usec·1000 − mid over every candidate frame of every output.
-        diffs: list[int] = []
-        for _, (usec, p) in odos[:3000]:
-            for k in index.get(p, ()):
-                diffs.append(usec * 1000 - frames[k].mid_ns)
-        if not diffs:
-            offset = 0
-        else:
-            bins = collections.Counter(d // 20_000 for d in diffs)
-            mode = bins.most_common(1)[0][0] * 20_000 + 10_000
-            near = sorted(d for d in diffs if abs(d - mode) <= 100_000)
-            offset = near[len(near) // 2]
-        matched: set[int] = set()
-        first_out: int | None = None
-        v_lat: list[int] = []
-        v_mis = v_dup = v_time = 0
-        for stamp, (usec, p) in odos:
-            cands = index.get(p)
-            if not cands:
-                v_mis += 1
-                continue
-            best = min(cands, key=lambda k: abs(usec * 1000 - frames[k].mid_ns - offset))
-            resid = usec * 1000 - frames[best].mid_ns - offset
-            if abs(resid) > period / 3:
-                v_time += 1
-                continue
-            if first_out is None or best < first_out:
-                first_out = best
-            f = frames[best]
-            if not t0 <= f.stamp <= t1:
-                continue
-            if best in matched:
-                v_dup += 1
-                continue
-            matched.add(best)
-            residuals.append(resid)
-            v_lat.append(stamp - f.stamp)
-            if v == 0:
-                first_vehicle.append((f.fn, f.stamp, stamp))
-        tracked = {k for k in in_window_idx if frames[k].positions.get(v) is not None}
-        # The decimator starts on the first pose it gets (the first one sent); when nothing came out
-        # before the window (a starved pipeline), assume it started with the window.
-        anchor = min(tracked, default=None)
-        if first_out is not None and (anchor is None or first_out < anchor):
-            anchor = first_out
-        wanted = designed_outputs(frames, v, anchor, vision_rate) & tracked if anchor is not None else set()
-        v_expected = len(wanted)
-        per_vehicle[v] = {
-            "expected": v_expected,
-            "delivered": len(matched),
-            "designed_drops": len(tracked) - v_expected,
-            "substituted": len(matched - wanted),
-            "mismatched": v_mis,
-            "unmatched_time": v_time,
-            "duplicates": v_dup,
-        }
-        latencies += v_lat
-        expected += v_expected
-        delivered += len(matched)
-        designed += len(tracked) - v_expected
-        substituted += len(matched - wanted)
-        mismatched += v_mis
-        duplicates += v_dup
-        unmatched_time += v_time
-    in_window = [frames[k] for k in in_window_idx]
-    gaps = 0
-    for a, b in itertools.pairwise(in_window):
-        if b.fn > a.fn + 1:
-            gaps += b.fn - a.fn - 1
-    res_abs = sorted(abs(r) for r in residuals)
-    return {
-        "latencies": latencies,
-        "expected": expected,
-        "delivered": delivered,
-        "lost": max(0, expected - delivered),
-        "designed_drops": designed,
-        "substituted": substituted,
-        "mismatched": mismatched,
-        "duplicates": duplicates,
-        "unmatched_time": unmatched_time,
-        "frames": len(in_window),
-        "frame_gaps": gaps,
-        "clock_residual_us_p99": (res_abs[int(0.99 * (len(res_abs) - 1))] / 1e3) if res_abs else math.nan,
-        "per_vehicle": per_vehicle,
-        "first_vehicle": first_vehicle,
-    }
-
-
-def hop_breakdown(
-    matches: Sequence[tuple[int, int, int]], hops: Mapping[str, Mapping[int, int]]
-) -> dict[str, dict[str, float]]:
-    """Per-stage latency of vehicle 0 (ms percentiles) from the publish stamps its payloads carry.
-
-    Stages: ``ingest`` frame arrival → MocapPose stamped; ``transform`` → Pose stamped; ``downsampler`` →
-    vision stamped; ``gateway`` → ODOMETRY arrival.  Each includes the hop into it and the previous
-    stage's encoding and publication.  When the transform decimates, it stamps the vision pose before
-    the full-rate one: ``transform`` then ends at the vision stamp and there is no ``downsampler`` stage.
-    """
-    stages: dict[str, list[int]] = {"ingest": [], "transform": [], "downsampler": [], "gateway": []}
-    mocap, pose, vision = hops.get("mocap", {}), hops.get("pose", {}), hops.get("vision", {})
-    for fn, t_frame, t_odo in matches:
-        a, b, c = mocap.get(fn), pose.get(fn), vision.get(fn)
-        if a is None or b is None or c is None:
-            continue
-        stages["ingest"].append(a - t_frame)
-        if c <= b:  # the transform decimated: vision was stamped first
-            stages["transform"].append(c - a)
-        else:
-            stages["transform"].append(b - a)
-            stages["downsampler"].append(c - b)
-        stages["gateway"].append(t_odo - c)
-    return {name: latency_stats(v).as_dict() for name, v in stages.items() if v}
-
-
-class HopWatcher:
-    """Subscribes to the first vehicle's mocap, pose and vision keys and keeps each frame's publish stamp."""
-
-    def __init__(self, bus: Bus, vehicle: str) -> None:
-        self.stamps: dict[str, dict[int, int]] = {"mocap": {}, "pose": {}, "vision": {}}
-        self._subs = []
-        for kind, key in (
-            ("mocap", keys.mocap(vehicle)),
-            ("pose", keys.pose(vehicle)),
-            ("vision", keys.vision(vehicle)),
-        ):
-            table = self.stamps[kind]
-
-            def on_sample(sample: Any, table: dict[int, int] = table) -> None:
-                try:
-                    m = msgpack.unpackb(sample.payload.to_bytes())
-                    table[int(m["fn"])] = int(m["tp"])
-                except Exception:
-                    pass
-
-            self._subs.append(bus.session.declare_subscriber(key, on_sample))
-
-    def clear(self) -> None:
-        for table in self.stamps.values():
-            table.clear()
-
-    def close(self) -> None:
-        for sub in self._subs:
-            try:
-                sub.undeclare()
-            except Exception:
-                pass
-
-
-def analyze_floor(
-    frames: Sequence[tuple[int, bytes]],
-    outputs: Mapping[int, Sequence[tuple[int, bytes]]],
-    t0: int,
-    t1: int,
-) -> dict[str, Any]:
-    """Latencies (ns) and losses of a floor chain: messages carry their frame number."""
-    from bench.floor import HEADER
-
-    stamps: dict[int, int] = {}
-    for stamp, data in frames:
-        if len(data) >= 8:
-            stamps.setdefault(struct.unpack_from("<Q", data)[0], stamp)
-    window = {fn for fn, s in stamps.items() if t0 <= s <= t1}
-    latencies: list[int] = []
-    delivered = duplicates = 0
-    for records in outputs.values():
-        seen: set[int] = set()
-        for stamp, data in records:
-            if len(data) < HEADER.size:
-                continue
-            fn = HEADER.unpack_from(data)[0]
-            if fn not in window:
-                continue
-            if fn in seen:
-                duplicates += 1
-                continue
-            seen.add(fn)
-            latencies.append(stamp - stamps[fn])
-        delivered += len(seen)
-    expected = len(window) * len(outputs)
-    return {
-        "latencies": latencies,
-        "expected": expected,
-        "delivered": delivered,
-        "lost": expected - delivered,
-        "duplicates": duplicates,
-        "frames": len(window),
-    }
-
-
-# -- the harness's Zenoh side --------------------------------------------------------------------------------
-
-
-class TruthFeeder:
-    """Publishes every vehicle's true pose (a small circle each, all different) at ``rate`` Hz."""
-
-    def __init__(self, bus: Bus, vehicles: Sequence[str], rate: float = TRUTH_RATE) -> None:
-        self.pubs = [bus.stream_publisher(keys.truth(v), wire.Pose) for v in vehicles]
-        self.rate = rate
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="bench-truth", daemon=True)
-        self.sent = 0
-
-    @staticmethod
-    def position(i: int, t: float) -> tuple[float, float, float]:
-        """Vehicle ``i``'s true NED position at ``t`` s: a 0.2 m circle at 0.5 Hz around its grid cell."""
-        col, row = i % 5, i // 5
-        cn, ce = -2.4 + 1.2 * col, -1.2 + 0.8 * (row % 4)
-        a = 2 * math.pi * 0.5 * t + 0.3 * i
-        return cn + 0.2 * math.cos(a), ce + 0.2 * math.sin(a), -1.0 - 0.05 * math.sin(a)
-
-    def _run(self) -> None:
-        period = 1.0 / self.rate
-        t_start = time.monotonic()
-        k = 0
-        while not self._stop.is_set():
-            due = t_start + k * period
-            left = due - time.monotonic()
-            if left > 0 and self._stop.wait(left):
-                break
-            k += 1
-            now = time.time_ns()
-            t = now * 1e-9
-            for i, pub in enumerate(self.pubs):
-                q = quat_from_yaw(0.5 * math.sin(0.2 * t + i))
-                pub.put(wire.Pose(t=now, p=self.position(i, t), q=q, ok=True, tp=now))
-            self.sent += 1
-
-    def start(self) -> TruthFeeder:
-        self._thread.start()
-        return self
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
-
-
-class StatsWatcher:
-    """Keeps the latest :class:`~arena_common.core.wire.Stats` of every service."""
-
-    def __init__(self, bus: Bus) -> None:
-        self.latest: dict[str, wire.Stats] = {}
-        self._lock = threading.Lock()
-        self._sub = bus.subscribe("arena/sys/stats/**", capacity=4096, ring=False)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="bench-stats", daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            item = self._sub.get(0.2)
-            if item is not None and isinstance(item.payload, wire.Stats):
-                with self._lock:
-                    self.latest[item.payload.service] = item.payload
-
-    def counters(self) -> dict[str, dict[str, int]]:
-        """Every service's counters and rejections (cumulative), flattened per service."""
-        with self._lock:
-            return {
-                name: {
-                    "pid": s.pid,
-                    **{k: int(v) for k, v in s.counts.items()},
-                    **{f"rejected:{k}": int(v) for k, v in s.rejected.items()},
-                }
-                for name, s in self.latest.items()
-            }
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(2.0)
 
 
 def _result(

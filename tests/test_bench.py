@@ -15,10 +15,11 @@ import pytest
 
 from arena_common.mavlink import px4
 from arena_common.mavlink.link import mavlink2
+from bench import report
 from bench import run as bench
 from bench.floor import HEADER
 from bench.harness import BenchError, latency_stats
-from bench.pipeline import (
+from bench.matching import (
     _f32,
     _FrameInfo,
     analyze_arena,
@@ -172,7 +173,7 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
     assert names >= {"NatNet decode, 10-body frame", "20 × 360 Hz without loss"}
     text = docs.read_text()
     assert "Hand-written text stays." in text
-    assert text.count(bench.DOCS_BEGIN) == 1 and "| 1 × 180 Hz | arena |" in text
+    assert text.count(report.DOCS_BEGIN) == 1 and "| 1 × 180 Hz | arena |" in text
 
-    bench.update_docs(docs, bench.load_result(tmp_path / "results" / "latest.json"))
-    assert docs.read_text().count(bench.DOCS_BEGIN) == 1  # replaced, not appended
+    report.update_docs(docs, bench.load_result(tmp_path / "results" / "latest.json"))
+    assert docs.read_text().count(report.DOCS_BEGIN) == 1  # replaced, not appended
