@@ -187,6 +187,8 @@ class ClockSync:
         self._thread: threading.Thread | None = None
         self._pub = bus.stream_publisher(keys.clock(host, service), wire.ClockOffset)
         self._warned: str | None = None
+        # offset_ns runs for every pose: its value, valid until a monotonic time or the next exchange.
+        self._cached: tuple[float, int | None] | None = None
         if reference:
             bus.serve(keys.TIME, self._answer, workers=1)
 
@@ -224,6 +226,7 @@ class ClockSync:
                 self.ref = ref
             steps = self.estimator.steps
             refused = self.estimator.add(t1, t2, t3, t4, mono)
+            self._cached = None
             self.answered += 1
             stepped = self.estimator.steps > steps
         if stepped:
@@ -234,9 +237,16 @@ class ClockSync:
         """The mocap host's clock minus ours now, ns (None while unknown); cheap, for every pose."""
         if self.reference:
             return 0
+        now = time.monotonic()
+        cached = self._cached
+        if cached is not None and now < cached[0]:
+            return cached[1]
+        # Between exchanges every bound widens alike, so the centre stays: recomputed once a second at most.
         with self._lock:
-            est = self.estimator.estimate(time.monotonic())
-        return None if est is None else est.offset_ns
+            est = self.estimator.estimate(now)
+        offset = None if est is None else est.offset_ns
+        self._cached = (now + 1.0, offset)
+        return offset
 
     def status(self, mono: float | None = None) -> ClockStatus:
         """The state of this host's clock now."""
