@@ -152,12 +152,15 @@ def test_attitude_and_thrust_fly_and_a_steep_tilt_is_refused(flying: tuple[Rig, 
     refused = next(e for e in events if e.kind == "safety" and "tilted 50.0° from level, above 35°" in e.text)
     assert refused.text.startswith("setpoint refused") and d1.mode != FlightMode.OFFBOARD
     with d1.offboard() as ctl:
-        # Level, a little more thrust than the hover estimate: it climbs.
-        ctl.attitude(0.0, 0.0, 0.0, 0.62)
+        # Level, a little more thrust than hover (0.5): it climbs. Then less than hover until the climb
+        # has stopped, so how late this program sees the climb does not decide how high it goes.
+        ctl.attitude(0.0, 0.0, 0.0, 0.56)
         d1.wait_until(lambda v: v.position is not None and v.position[2] < p0[2] - 0.3, 10.0, "a climb")
-        # Nose down 10° (negative pitch, FRD) at hover thrust: it moves north.
+        ctl.attitude(0.0, 0.0, 0.0, 0.44)
+        d1.wait_until(lambda v: v.velocity is not None and v.velocity[2] > -0.05, 10.0, "the climb stopped")
+        # Nose down 10° (negative pitch, FRD), thrust whose vertical part balances gravity: it moves north.
         north0 = d1.position[0] if d1.position else p0[0]
-        ctl.attitude(0.0, math.radians(-10.0), 0.0, 0.52)
+        ctl.attitude(0.0, math.radians(-10.0), 0.0, 0.5 / math.cos(math.radians(10.0)))
         d1.wait_until(lambda v: v.position is not None and v.position[0] > north0 + 0.2, 10.0, "moving north")
         with pytest.raises(ValueError, match=r"thrust must be within 0\.\.1"):
             ctl.attitude(0.0, 0.0, 0.0, 1.5)
