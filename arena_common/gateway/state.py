@@ -121,12 +121,14 @@ class VehicleState:
 
     def _boot_time(self, boot_ms: int, now: float) -> None:
         # Message types are sampled at different times, so a clock a few ms back is not a reboot; a clock
-        # back by more than a second is, and so is one back at all after the autopilot fell silent (a reboot
-        # soon after the last one: its clock has not gone far).
+        # back by more than a second is, and so is one back at all after the autopilot fell silent, or one
+        # back by more than the sampling spread to under a second (a reboot soon after the last one: its
+        # clock has not gone far; a busy host may read the silence's two ends back to back).
         back = self.boot_ms - boot_ms
         silent = now - self._boot_seen > 0.3
         self._boot_seen = now
-        if self.boot_ms >= 0 and (back > 1000 or (back > 0 and silent)):
+        restarted = back > 1000 or (back > 0 and silent) or (back > 50 and boot_ms < 1000)
+        if self.boot_ms >= 0 and restarted:
             self.reboots += 1
             self.events.emit("info", "the autopilot rebooted (its clock went back)", 5, boot_ms=boot_ms)
             for cb in self.on_reboot:
