@@ -20,7 +20,7 @@ from typing import Annotated
 
 import typer
 
-from arena_common.bus.session import BusOptions
+from arena_common.bus.session import BusOptions, Lane
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
@@ -64,7 +64,7 @@ def main(
     with running(SERVICE, cfg, options, vehicle=vehicle, host=host, stop=stop) as svc:
         svc.log.info("%s → %s at %.1f Hz", keys.pose(vehicle), keys.vision(vehicle), filt.rate_hz)
         sub = svc.bus.subscribe(keys.pose(vehicle), capacity=QUEUE_CAPACITY, ring=False)
-        pub = svc.bus.stream_publisher(keys.vision(vehicle), wire.Pose)
+        pub = svc.bus.stream_publisher(keys.vision(vehicle), wire.Pose, Lane.VISION)
         dropped = 0
         while not svc.stopped:
             item = sub.get(0.2)

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import typer
 
-from arena_common.bus.session import BusOptions, Publisher
+from arena_common.bus.session import BusOptions, Lane, Publisher
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.geometry.filters import VelocityEstimator
@@ -129,7 +129,7 @@ class Decimators:
         self.svc = svc
         self.filters = {name: VisionFilter(v.vision_rate) for name, v in cfg.vehicles.items()}
         self.publishers = {
-            name: svc.bus.stream_publisher(keys.vision(name), wire.Pose) for name in self.filters
+            name: svc.bus.stream_publisher(keys.vision(name), wire.Pose, Lane.VISION) for name in self.filters
         }
 
     def offer(self, drone: str, pose: wire.Pose) -> None:
@@ -165,6 +165,7 @@ def main(
             svc.log.info("decimating %d vehicles into vision in-process", len(decimators.filters))
         sub = svc.bus.subscribe(SUBSCRIPTION, capacity=QUEUE_CAPACITY, ring=False)
         publishers: dict[str, Publisher[wire.Pose]] = {}
+        shed_ns = int(cfg.pipeline.shed_after * 1e9)
         dropped = 0
         while not svc.stopped:
             item = sub.get(0.2)
@@ -187,7 +188,7 @@ def main(
                 if len(publishers) >= MAX_VEHICLES:
                     svc.reject("too_many_vehicles", f"{drone}: already serving {MAX_VEHICLES} vehicles")
                     continue
-                pub = publishers[drone] = svc.bus.stream_publisher(keys.pose(drone), wire.Pose)
+                pub = publishers[drone] = svc.bus.stream_publisher(keys.pose(drone), wire.Pose, Lane.CONTROL)
                 svc.log.info("serving %s", drone)
             try:
                 pose = converter.convert(drone, m)
@@ -196,6 +197,9 @@ def main(
                 continue
             if decimators is not None:
                 decimators.offer(drone, pose)  # vision first: it is the latency-critical output
+                if shed_ns and time.time_ns() - item.t_recv > shed_ns:
+                    svc.stats.count("shed")  # behind: the full-rate pose goes, the vision did not
+                    continue
             pub.put(pose)
             svc.stats.count("out")
             if not pose.ok:

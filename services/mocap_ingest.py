@@ -18,7 +18,7 @@ import time
 
 import typer
 
-from arena_common.bus.session import BusOptions, Publisher
+from arena_common.bus.session import BusOptions, Lane, Publisher
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import InvalidName
@@ -114,7 +114,9 @@ class Ingest:
                 self.by_id[body] = vehicle
             else:
                 self.by_name[body] = vehicle
-        self.pubs = {v: svc.bus.stream_publisher(keys.mocap(v), wire.MocapPose) for v in cfg.vehicles}
+        self.pubs = {
+            v: svc.bus.stream_publisher(keys.mocap(v), wire.MocapPose, Lane.CONTROL) for v in cfg.vehicles
+        }
         self.unknown_pubs: dict[str, Publisher[wire.MocapPose]] = {}
         self.tracked: dict[str, bool] = {}
         self._logged: dict[str, float] = {}

@@ -12,6 +12,7 @@ Recording starts at once into ``rec_<host>_<time>.mcap``.
 
 from __future__ import annotations
 
+import logging
 import threading
 from pathlib import Path
 from typing import Annotated, Any
@@ -34,7 +35,7 @@ from arena_common.runtime.options import (
     bus_options,
     load_config,
 )
-from arena_common.runtime.service import running, setup_logging
+from arena_common.runtime.service import running, setup_logging, yield_cpu
 
 QUEUE_CAPACITY = 50_000  # samples; ≈10 s of a busy arena
 
@@ -128,6 +129,7 @@ def cli(
     """Record the bus into MCAP files (Foxglove, PlotJuggler, `arena rec info`)."""
     setup_logging(log_level)
     cfg = load_config(config)
+    yield_cpu(logging.getLogger("arena.recorder"))
     main(cfg, bus_options(mode, connect, listen, zconfig), host=host, directory=directory, name=name)
 
 

@@ -234,7 +234,7 @@ def test_runs_as_a_process(
     assert quat_angle(pose.q, quat_from_euler(0.0, 0.0, math.radians(-90.0))) < 1e-9
 
 
-DECIMATE_IN_TRANSFORM = '[pipeline]\ndecimate = "transform"'
+DECIMATE_IN_TRANSFORM = '[pipeline]\ndecimate = "transform"\nshed_after = 0  # every pose out, however busy'
 
 
 def test_decimates_into_vision_when_configured(
@@ -266,6 +266,43 @@ def test_decimates_into_vision_when_configured(
     gaps = [(b.t - a.t) / 1e6 for a, b in itertools.pairwise(out)]
     assert min(gaps) > 16.0 and max(gaps) < 24.0, gaps  # 20 ms slots, picked by measurement time
     assert len(stranger_vision.channel) == 0
+
+
+def test_a_transform_behind_sheds_full_rate_poses_never_vision(
+    arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
+) -> None:
+    """A sample that waited in the queue longer than ``shed_after`` loses its pose, never its vision."""
+    # 1 µs: every sample has waited longer by the time it is taken, so every full-rate pose is shed.
+    cfg = arena_config(extra='[pipeline]\ndecimate = "transform"\nshed_after = 0.000001')
+    bus = bus_factory()
+    link = Link(bus)
+    poses = bus.subscribe(keys.pose("d1"), capacity=1000, ring=False)
+    vision = bus.subscribe(keys.vision("d1"), capacity=1000, ring=False)
+    stats = bus.subscribe(keys.stats("test", "transform"), capacity=100, ring=True)
+    with service_thread(frame_transform.main, cfg, host="test"):
+
+        def count(name: str) -> float:
+            item = stats.get(0.3)
+            payload = item.payload if item is not None else None
+            return payload.counts.get(name, 0) if isinstance(payload, wire.Stats) else 0
+
+        warm = mocap(0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), ok=False)
+
+        def reading() -> bool:
+            link.pub.put(warm)
+            return count("in") > 0
+
+        wait_for(reading, timeout=20, what="the transform reading")
+        before = count("shed")
+        for i in range(180):
+            link.pub.put(mocap(1000 + i, (0.001 * i, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
+        wait_for(
+            lambda: count("shed") >= before + 180, timeout=10, what="every full-rate pose counted as shed"
+        )
+        wait_for(lambda: len(vision.channel) >= 49, timeout=10, what="a second of vision")
+    assert all(not i.payload.ok for i in poses.channel.drain() if isinstance(i.payload, wire.Pose))
+    out = [i.payload for i in vision.channel.drain() if isinstance(i.payload, wire.Pose)]
+    assert 49 <= len(out) <= 51 and all(v.ok for v in out), len(out)
 
 
 def test_decimating_transform_replaces_the_downsampler_processes(

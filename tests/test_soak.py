@@ -209,7 +209,7 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
     if DECIMATE == "transform":
         # The transform decimates: its vision_* counters are the downsamplers' (summed over vehicles).
         total.update(
-            ds_in=tf_out,
+            ds_in=tf_out + _delta(a, b, "transform", "shed"),  # its decimators see shed poses too
             ds_out=_delta(a, b, "transform", "vision"),
             ds_skipped=_delta(a, b, "transform", "vision_skipped"),
             ds_invalid=_delta(a, b, "transform", "vision_invalid"),

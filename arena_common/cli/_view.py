@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Annotated
 
 import typer
@@ -13,7 +14,7 @@ from arena_common.runtime.options import (
     HostOpt,
     LogOpt,
 )
-from arena_common.runtime.service import setup_logging
+from arena_common.runtime.service import setup_logging, yield_cpu
 
 
 def view_cmd(
@@ -33,6 +34,7 @@ def view_cmd(
     """Serve the arena live in 3D over the Foxglove WebSocket protocol (open ws://ADDRESS:PORT in Foxglove)."""
     setup_logging(log_level)
     cfg = global_config(required=False)
+    yield_cpu(logging.getLogger("arena.viewer"))
 
     def ready(view: LiveView) -> None:
         typer.echo(

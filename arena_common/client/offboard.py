@@ -24,6 +24,7 @@ from collections.abc import Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
+from arena_common.bus.session import Lane
 from arena_common.client.trajectory import Trajectory
 from arena_common.core import keys, wire
 from arena_common.core.errors import CommandError, CommandRejected, SafetyRefused, VehicleNotPresent
@@ -93,7 +94,9 @@ class OffboardStream:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._handed_over = False
-        self._pub = vehicle.arena.bus.stream_publisher(keys.setpoint(vehicle.name), wire.Setpoint)
+        self._pub = vehicle.arena.bus.stream_publisher(
+            keys.setpoint(vehicle.name), wire.Setpoint, Lane.CONTROL
+        )
         self.sent = 0
         self.errors = 0
 

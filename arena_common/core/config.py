@@ -209,9 +209,14 @@ class PipelineSpec(Spec, frozen=True):
     on the vehicle's companion computer.  ``transform``: the frame transform decimates every configured
     vehicle in-process — one process and one hop less per vehicle, and only the vision rate leaves the
     ground computer.
+
+    ``shed_after`` (s, transform decimating only; 0: never): a sample that waited longer than this in
+    the transform's queue (it cannot keep up) still feeds its vehicle's vision, but its full-rate pose is
+    shed (counted ``shed``): vision before everything else.
     """
 
     decimate: Literal["downsampler", "transform"] = "downsampler"
+    shed_after: Annotated[float, Meta(ge=0.0, le=10.0)] = 0.05
 
 
 class ClockSpec(Spec, frozen=True):

@@ -57,7 +57,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from arena_common.bus.session import Bus, Subscription
+from arena_common.bus.session import Bus, Handler, Lane, Received, Subscription
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.gateway.commands import CommandExecutor
@@ -224,7 +224,9 @@ class Gateway:
             self._handlers[MSG["GPS_GLOBAL_ORIGIN"]] = self.origin.on_gps_global_origin
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._state_pub = bus.stream_publisher(keys.state(v.name), wire.State) if bus is not None else None
+        self._state_pub = (
+            bus.stream_publisher(keys.state(v.name), wire.State, Lane.REPORT) if bus is not None else None
+        )
         self._check_wanted = False  # set when the link comes up (or the autopilot reboots)
         self._checking = threading.Lock()
         self._lost_since: float | None = None
@@ -249,8 +251,10 @@ class Gateway:
         self._thread(self._read_loop, "mavlink")
         bus = self.bus
         if bus is not None:
-            vision_sub = bus.subscribe(keys.vision(self.name), capacity=1, ring=True)
-            self._thread(self._vision_loop, "vision", vision_sub)
+            # Each pose is sent from the Zenoh thread that received it: no hand-off, no thread to wake.
+            bus.subscribe(
+                keys.vision(self.name), channel=Handler(self._on_vision, lambda e: self._failed("vision", e))
+            )
             sp_sub = bus.subscribe(keys.setpoint(self.name), capacity=4, ring=True)
             self._thread(self.forwarder.run, "setpoints", sp_sub, self._stop, self._failed)
             estop_sub = bus.subscribe(keys.ESTOP, capacity=16, ring=False)
@@ -615,32 +619,22 @@ class Gateway:
                     except Exception as exc:  # the bus is closing, or a field msgpack cannot carry
                         self._failed("telemetry", exc)
 
-    def _vision_loop(self, sub: Subscription) -> None:
-        dropped = 0
-        while not self._stop.is_set():
-            item = sub.get(0.2)
-            # Samples overwritten in the one-slot ring before this thread took them.
-            superseded, dropped = sub.channel.dropped - dropped, sub.channel.dropped
-            self.stats.reject("vision: superseded", superseded)
-            if item is None:
-                continue
-            self.stats.count("in")
-            if item.error is not None or item.payload is None:
-                self.stats.reject("vision: undecodable")
-                continue
-            pose = item.payload
-            if not isinstance(pose, wire.Pose):
-                self.stats.reject("vision: not a Pose")
-                continue
-            try:
-                reason = self.vision.offer(pose)
-            except Exception as exc:  # one sample must never end the vision for good
-                self._failed("vision", exc)
-                continue
-            if reason is None:
-                self.stats.latency((wire.now_ns() - pose.t + self.vision.correction()) * 1e-9)
-            else:
-                self.stats.reject(f"vision: {reason}")
+    def _on_vision(self, item: Received[Any]) -> None:
+        if self._stop.is_set():
+            return
+        self.stats.count("in")
+        if item.error is not None or item.payload is None:
+            self.stats.reject("vision: undecodable")
+            return
+        pose = item.payload
+        if not isinstance(pose, wire.Pose):
+            self.stats.reject("vision: not a Pose")
+            return
+        reason = self.vision.offer(pose)
+        if reason is None:
+            self.stats.latency((wire.now_ns() - pose.t + self.vision.correction()) * 1e-9)
+        else:
+            self.stats.reject(f"vision: {reason}")
 
     def _estop_loop(self, sub: Subscription) -> None:
         while not self._stop.is_set():

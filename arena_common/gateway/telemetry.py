@@ -6,7 +6,7 @@ import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from arena_common.bus.session import Bus, Publisher
+from arena_common.bus.session import Bus, Lane, Publisher
 from arena_common.core import keys, wire
 
 
@@ -50,7 +50,7 @@ class TelemetryPublisher:
         pub = self._pubs.get(name)
         if pub is None:
             pub = self._pubs[name] = self.bus.stream_publisher(
-                keys.telemetry(self.drone, name), wire.Telemetry
+                keys.telemetry(self.drone, name), wire.Telemetry, Lane.REPORT
             )
         pub.put(wire.Telemetry(t=t_ns, msg=name, f=dict(fields)))
         self.published += 1

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import collections
 import math
+import struct
 import time
 from collections.abc import Callable
 
 from arena_common.core import wire
 from arena_common.core.errors import GatewayError
 from arena_common.geometry.frames import quat_to_euler
-from arena_common.mavlink import px4
+from arena_common.mavlink import fastframe, px4
 from arena_common.mavlink.link import MavlinkLink
 from arena_common.runtime.service import Stats
 
@@ -111,7 +112,12 @@ class VisionSender:
                 reset_counter=self.reset_counter,
                 angular_velocity_frd=pose.w if with_velocity else None,
             )
-            msg = mav.odometry_encode(**args)
+            try:
+                payload = fastframe.odometry_payload(args)
+            except (struct.error, OverflowError) as exc:  # a value beyond its field's type
+                self.link.pack_errors += 1
+                self.link.last_pack_error = f"ODOMETRY: {exc}"
+                return "cannot be packed"
         else:
             roll, pitch, yaw = quat_to_euler(pose.q)
             cov = [math.nan] + [0.0] * 20
@@ -124,7 +130,13 @@ class VisionSender:
             # The thread may have been stopped (a frozen process, a long pause) since the age check.
             return clock_given or wire.now_ns() <= deadline_ns
 
-        if not self.link.send(msg, fresh=fresh):
+        if self.message == "odometry":
+            sent = self.link.send_packed(
+                fastframe.ODOMETRY, payload, lambda: mav.odometry_encode(**args), fresh
+            )
+        else:
+            sent = self.link.send(msg, fresh=fresh)
+        if not sent:
             if not fresh():
                 return "stale"
             return "cannot be packed" if self.link.pack_errors > packs else "link down"

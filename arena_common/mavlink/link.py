@@ -48,6 +48,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import all as mavlink2  # common + development + the rest: every CRC_EXTRA
 
 from arena_common.core.errors import ArenaError
+from arena_common.mavlink.fastframe import FrameType
 from arena_common.mavlink.signing import LinkSigning
 
 __all__ = [
@@ -624,6 +625,30 @@ class MavlinkLink:
             if fresh is not None and not fresh():
                 return False
             self.mav.seq = (self.mav.seq + 1) % 256
+            return self._write(t, buf)
+
+    def send_packed(
+        self,
+        ftype: FrameType,
+        payload: bytes,
+        message: Callable[[], Any],
+        fresh: Callable[[], bool] | None = None,
+    ) -> bool:
+        """As :meth:`send`, for a payload already packed: framed here without a pymavlink object.
+
+        A signed link needs pymavlink's signature: there ``message()`` builds the object instead.
+        """
+        if self.signing is not None:
+            return self.send(message(), fresh)
+        with self._lock:
+            t = self._transport
+            if t is None or not t.can_send():
+                return False
+            mav = self.mav
+            buf = ftype.frame(payload, mav.seq, mav.srcSystem, mav.srcComponent)
+            if fresh is not None and not fresh():
+                return False
+            mav.seq = (mav.seq + 1) % 256
             return self._write(t, buf)
 
     def send_raw(self, data: bytes) -> bool:

@@ -33,7 +33,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from arena_common.bus.session import Bus
+from arena_common.bus.session import Bus, Lane
 from arena_common.core import keys, wire
 from arena_common.core.config import ClockSpec
 
@@ -185,7 +185,7 @@ class ClockSync:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._pub = bus.stream_publisher(keys.clock(host, service), wire.ClockOffset)
+        self._pub = bus.stream_publisher(keys.clock(host, service), wire.ClockOffset, Lane.REPORT)
         self._warned: str | None = None
         # offset_ns runs for every pose: its value, valid until a monotonic time or the next exchange.
         self._cached: tuple[float, int | None] | None = None

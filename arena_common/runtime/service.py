@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from arena_common.bus.hosts import host_bus_options, host_name
-from arena_common.bus.session import Bus, BusOptions, open_bus
+from arena_common.bus.session import Bus, BusOptions, Lane, open_bus
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.runtime.clock import ClockSync
@@ -126,7 +126,7 @@ class Service:
         self.log = logging.getLogger(f"arena.{self.id}")
         self.started = time.monotonic()
         self._last_warn: dict[str, float] = {}
-        self._stats_pub = bus.stream_publisher(keys.stats(host, self.id), wire.Stats)
+        self._stats_pub = bus.stream_publisher(keys.stats(host, self.id), wire.Stats, Lane.REPORT)
         #: This host's clock offset to the mocap host's (set by :func:`running`).
         self.clock: ClockSync | None = None
 
@@ -176,6 +176,27 @@ class Service:
     def sleep(self, seconds: float) -> bool:
         """Wait up to ``seconds``; returns True if a stop was asked for meanwhile."""
         return self.stop.wait(seconds)
+
+
+BACKGROUND_NICE = 10  # added to the niceness of a process the vehicles do not depend on
+
+
+def yield_cpu(log: logging.Logger | None = None) -> int:
+    """Lower this process's CPU priority by :data:`BACKGROUND_NICE`; the new niceness.
+
+    For processes no vehicle depends on (the recorder, the live viewer): on a computer that cannot keep
+    up, the kernel then gives the CPU to the vision pipeline (ingest, transform, downsamplers, gateways)
+    first, and these fall behind and shed (counted) instead.
+    """
+    try:
+        value = os.nice(BACKGROUND_NICE)
+    except OSError as exc:  # not allowed here: run as before, and say so
+        if log is not None:
+            log.warning("cannot lower this process's CPU priority: %s", exc)
+        return os.nice(0)
+    if log is not None:
+        log.info("running at CPU niceness %d: the vision pipeline goes first", value)
+    return value
 
 
 @contextmanager
