@@ -359,6 +359,15 @@ def test_state_telemetry_and_timesync(make_rig: Callable[..., Rig]) -> None:
     assert tele.get("timesync", 0) >= 1  # the gateway's own round-trip measurement
     # PX4's side: our answers to its TIMESYNC requests were accepted by its filter.
     assert ap.timesync.sequence > 0 and ap.timesync.last_rtt_us >= 0
+    # Telemetry nobody listens to is neither decoded nor published: once the subscriber is gone, only
+    # the count of unwatched messages grows.
+    telemetry = rig.gateways["d1"].telemetry
+    sub.close()
+    wait_for(lambda: telemetry.unwatched > 20, 10.0, what="unwatched telemetry counted")
+    published = telemetry.published
+    unwatched = telemetry.unwatched
+    wait_for(lambda: telemetry.unwatched > unwatched + 20, 10.0, what="more unwatched telemetry")
+    assert telemetry.published == published
 
 
 def test_command_refusals_errors_and_params(make_rig: Callable[..., Rig]) -> None:

@@ -319,6 +319,17 @@ class Publisher(Generic[P]):
         self._pub.put(payload.encode())
         self.sent += 1
 
+    @property
+    def matching(self) -> bool:
+        """Whether any subscriber (here or on any computer of the bus) takes this key now."""
+        try:
+            status: Any = (
+                self._pub.matching_status
+            )  # typed as a bool by the stubs; a MatchingStatus at run time
+            return bool(status.matching)
+        except Exception:  # undeclared with its session
+            return False
+
     def put_raw(self, data: bytes) -> None:
         """Publish bytes as they are (replay, tests of bad input)."""
         self._pub.put(data)

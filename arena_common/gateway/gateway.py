@@ -574,7 +574,7 @@ class Gateway:
             fs=tuple(flags),
             tp=t,
         )
-        if self._state_pub is not None:
+        if self._state_pub is not None and self._state_pub.matching:  # nobody listening: nothing to send
             self._safe(self._state_pub.put, msg)
         return msg
 

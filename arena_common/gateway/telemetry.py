@@ -21,7 +21,10 @@ def _plain(value: Any) -> Any:
 class TelemetryPublisher:
     """Publishes raw messages on ``arena/<drone>/telemetry/<MSG>``, at most ``rate`` Hz per message type.
 
-    :meth:`due` is asked before decoding, so a message type that is not due costs nothing.
+    Only while someone subscribes to the message's key (a program's ``d1.telemetry(...)``, the recorder,
+    ``arena echo``): an unwatched message costs a lookup, not a decode and a publication (counted in
+    :attr:`unwatched`).  :meth:`due` is asked before decoding, so a message type that is not due costs
+    nothing.
     """
 
     def __init__(self, bus: Bus | None, drone: str, rate: float = 10.0, exclude: Iterable[int] = ()) -> None:
@@ -32,6 +35,7 @@ class TelemetryPublisher:
         self._next: dict[int, float] = {}
         self._pubs: dict[str, Publisher[wire.Telemetry]] = {}
         self.published = 0
+        self.unwatched = 0
 
     def due(self, msgid: int, now: float) -> bool:
         return self.bus is not None and now >= self._next.get(msgid, 0.0) and msgid not in self.exclude
@@ -39,18 +43,37 @@ class TelemetryPublisher:
     def publish(self, msg: Any, now: float, t_ns: int) -> None:
         """Publish one decoded message (the caller checked :meth:`due`)."""
         self._next[msg.get_msgId()] = now + self.period
-        self.put(
-            msg.get_type(), {k: _plain(v) for k, v in msg.to_dict().items() if k != "mavpackettype"}, t_ns
+        name = msg.get_type()
+        pub = self._publisher(name)
+        if pub is None:
+            return
+        if not pub.matching:
+            self.unwatched += 1
+            return
+        pub.put(
+            wire.Telemetry(
+                t=t_ns, msg=name, f={k: _plain(v) for k, v in msg.to_dict().items() if k != "mavpackettype"}
+            )
         )
+        self.published += 1
 
     def put(self, name: str, fields: Mapping[str, Any], t_ns: int) -> None:
         """Publish fields under a message name (also used for the gateway's own measurements)."""
-        if self.bus is None:
+        pub = self._publisher(name)
+        if pub is None:
             return
+        if not pub.matching:
+            self.unwatched += 1
+            return
+        pub.put(wire.Telemetry(t=t_ns, msg=name, f=dict(fields)))
+        self.published += 1
+
+    def _publisher(self, name: str) -> Publisher[wire.Telemetry] | None:
+        if self.bus is None:
+            return None
         pub = self._pubs.get(name)
         if pub is None:
             pub = self._pubs[name] = self.bus.stream_publisher(
                 keys.telemetry(self.drone, name), wire.Telemetry, Lane.REPORT
             )
-        pub.put(wire.Telemetry(t=t_ns, msg=name, f=dict(fields)))
-        self.published += 1
+        return pub
