@@ -44,31 +44,21 @@ class TelemetryPublisher:
         """Publish one decoded message (the caller checked :meth:`due`)."""
         self._next[msg.get_msgId()] = now + self.period
         name = msg.get_type()
-        pub = self._publisher(name)
-        if pub is None:
-            return
-        if not pub.matching:
-            self.unwatched += 1
-            return
-        pub.put(
-            wire.Telemetry(
-                t=t_ns, msg=name, f={k: _plain(v) for k, v in msg.to_dict().items() if k != "mavpackettype"}
-            )
-        )
-        self.published += 1
+        pub = self._watched(name)
+        if pub is not None:
+            fields = {k: _plain(v) for k, v in msg.to_dict().items() if k != "mavpackettype"}
+            pub.put(wire.Telemetry(t=t_ns, msg=name, f=fields))
+            self.published += 1
 
     def put(self, name: str, fields: Mapping[str, Any], t_ns: int) -> None:
         """Publish fields under a message name (also used for the gateway's own measurements)."""
-        pub = self._publisher(name)
-        if pub is None:
-            return
-        if not pub.matching:
-            self.unwatched += 1
-            return
-        pub.put(wire.Telemetry(t=t_ns, msg=name, f=dict(fields)))
-        self.published += 1
+        pub = self._watched(name)
+        if pub is not None:
+            pub.put(wire.Telemetry(t=t_ns, msg=name, f=dict(fields)))
+            self.published += 1
 
-    def _publisher(self, name: str) -> Publisher[wire.Telemetry] | None:
+    def _watched(self, name: str) -> Publisher[wire.Telemetry] | None:
+        """The publisher of ``name`` if anyone subscribes to it (else counted as unwatched)."""
         if self.bus is None:
             return None
         pub = self._pubs.get(name)
@@ -76,4 +66,7 @@ class TelemetryPublisher:
             pub = self._pubs[name] = self.bus.stream_publisher(
                 keys.telemetry(self.drone, name), wire.Telemetry, Lane.REPORT
             )
+        if not pub.matching:
+            self.unwatched += 1
+            return None
         return pub
