@@ -287,8 +287,10 @@ class Lane(enum.Enum):
     """How much a real-time stream matters when a link or a computer cannot carry everything.
 
     Zenoh serves higher priorities first and, for streams that drop rather than wait, sheds the lower ones
-    when its queues fill: vision (what keeps a vehicle in the air) goes first, express (never held back
-    to be batched); then poses and setpoints; state, telemetry, statistics and clock reports last.
+    when their queues fill: vision (what keeps a vehicle in the air) first; then poses and setpoints;
+    state, telemetry, statistics and clock reports last.  Not *express*: an express message is a batch
+    of its own, and a priority's queue holds two batches, so a burst of vision on a busy computer would
+    be dropped where batched it travels.
     """
 
     VISION = zenoh.Priority.REAL_TIME
@@ -311,7 +313,6 @@ class Publisher(Generic[P]):
             congestion_control=zenoh.CongestionControl.DROP if realtime else zenoh.CongestionControl.BLOCK,
             priority=lane.value if realtime else zenoh.Priority.INTERACTIVE_HIGH,
             reliability=zenoh.Reliability.BEST_EFFORT if realtime else zenoh.Reliability.RELIABLE,
-            express=realtime and lane is Lane.VISION,
         )
 
     def put(self, payload: P) -> None:
