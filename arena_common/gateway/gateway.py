@@ -8,12 +8,14 @@ and runs them in threads:
   acknowledgements, parameter values and the vehicle state, publishes raw telemetry (rate-limited per
   message type, decoding only what is used) and forwards every frame to the ground station if any;
 - **vision** — each pose on ``arena/<drone>/vision`` goes out once, as soon as it arrives, as ODOMETRY
-  (or VISION_POSITION_ESTIMATE); it needs neither the reader nor the bus router, so a gateway next to
-  its downsampler keeps the vision flowing (peer to peer on loopback) when the router dies;
+  (or VISION_POSITION_ESTIMATE), sent from the Zenoh thread that received it (no hand-off: a short,
+  bounded, non-blocking piece of work); it needs neither the reader nor the bus router, so a gateway
+  next to its downsampler keeps the vision flowing (peer to peer on loopback) when the router dies;
 - **setpoints** — the offboard stream with its leases and safety rules;
 - **commands** — the ``arena/<drone>/cmd`` queryable (two workers), and ``arena/estop``;
 - **events** — published in order from their own thread, so a congested bus never stalls the rest;
-- **supervisor** (the caller's thread, :meth:`Gateway.run`) — State at ``state_rate``, our HEARTBEAT
+- **supervisor** (the caller's thread, :meth:`Gateway.run`) — State at ``state_rate`` (published while
+  anyone subscribes; raw telemetry likewise, per message type), our HEARTBEAT
   at 1 Hz, our TIMESYNC probe at 1 Hz, link-loss detection (no HEARTBEAT for 3 s) and re-opening the
   link, the arena parameter check when the link comes up.
 
