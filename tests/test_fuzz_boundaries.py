@@ -253,7 +253,7 @@ def bad_samples(draw: st.DrawFn, key_choices: tuple[str, ...] = tuple(sorted(TYP
         raw = msgpack.packb(m, use_bin_type=True)
     elif how == "missing":
         required = [
-            spec.wire for name, spec in cls._specs if wire._default_of(cls, name) is wire.dataclasses.MISSING
+            spec.wire for name, spec in cls._specs if wire.default_of(cls, name) is dataclasses.MISSING
         ]
         del m[draw(st.sampled_from(required))]
         raw = msgpack.packb(m, use_bin_type=True)

@@ -15,7 +15,8 @@ import pytest
 
 from arena_common.bus.session import Bus
 from arena_common.core import config as config_mod
-from arena_common.mavlink.link import Frame, MavlinkLink, MavlinkLinkError, open_transport, parse_serial
+from arena_common.mavlink.link import Frame, MavlinkLink
+from arena_common.mavlink.transports import MavlinkLinkError, open_transport, parse_serial
 from tests.conftest import Proc, wait_for, write_config
 from tests.test_gateway import ARENA_PARAMS, SPEED, Rig
 

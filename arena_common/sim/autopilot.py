@@ -59,9 +59,9 @@ from pymavlink import mavutil
 
 from arena_common.geometry.quat import quat_from_euler, quat_rotate, quat_yaw
 from arena_common.mavlink import px4
-from arena_common.mavlink.link import MavlinkLinkError, parse_serial
 from arena_common.mavlink.px4 import ParamValue
 from arena_common.mavlink.signing import PX4_UNSIGNED, LinkSigning, SigningKey
+from arena_common.mavlink.transports import MavlinkLinkError, parse_serial
 from arena_common.sim.base import MapProjection, SimAutopilotError, TruePose, Vec3
 from arena_common.sim.flight import FlightMixin
 from arena_common.sim.mavlink_commands import CommandsMixin
