@@ -465,7 +465,11 @@ def test_without_require_setup_the_autopilot_decides(
         rig.wait_ready("d1")
         rig.wait_state("d1", lambda s: s.vis_rate > 20, 5.0, "vision flowing")
         assert rig.wait_state("d1", lambda s: s.link).setup_ok is False
-        res = rig.cmd("d1", "arm")  # the arena's parameter check is skipped: the autopilot decides
+        for _ in range(3):  # a busy machine may starve the vision stream for a moment: ask again
+            res = rig.cmd("d1", "arm")  # the arena's parameter check is skipped: the autopilot decides
+            if not res.reason.startswith("vision stale"):
+                break
+            rig.wait_state("d1", lambda s: s.vis_age is not None and s.vis_age < 0.1, 5.0, "fresh vision")
         assert res.result == "TEMPORARILY_REJECTED", res
         assert "No valid position estimate" in res.reason  # its own words
         assert not rig.aps["d1"].armed

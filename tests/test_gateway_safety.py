@@ -210,8 +210,8 @@ def test_dead_router_does_not_stop_the_vision_stream(tmp_path: Path) -> None:
         router.close()  # the router process dies; the feeder and the gateway are peers on this host
         time.sleep(0.5)
         sent, fused_before = gw.vision.sent, rig.aps["d1"].sim.estimator.vision_fusing
-        time.sleep(2.0)
-        assert gw.vision.sent - sent >= 70, gw.vision.sent - sent  # ~50 Hz, straight peer to peer
+        # ~50 Hz, straight peer to peer: 70 more poses in 1.4 s on an idle machine, later on a busy one.
+        wait_for(lambda: gw.vision.sent - sent >= 70, 10.0, what="vision flowing without the router")
         assert fused_before and rig.aps["d1"].sim.estimator.vision_fusing
     finally:
         rig.close()
