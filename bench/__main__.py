@@ -24,10 +24,10 @@ def bench(
         typer.Option("--part", "-p", help="pipeline, floor, peer or micro (repeatable; default: all)."),
     ] = None,
     vehicles: Annotated[
-        str | None, typer.Option("--vehicles", "-n", help="Vehicle counts, e.g. 1,10,20.")
+        str | None, typer.Option("--vehicles", "-n", help="Vehicle counts (default 1,20).")
     ] = None,
     rates: Annotated[
-        str | None, typer.Option("--rates", "-r", help="Mocap rates in Hz, e.g. 180,360.")
+        str | None, typer.Option("--rates", "-r", help="Mocap rates in Hz (default 180).")
     ] = None,
     floor: Annotated[
         list[str] | None,
@@ -50,9 +50,23 @@ def bench(
         float,
         typer.Option(
             "--realistic-vision",
-            help="Vision rate (Hz) of one more point at the largest load, as deployed (0: skip).",
+            help="Vision rate (Hz) of one more point per vehicle count, as deployed (0: skip).",
         ),
     ] = 50.0,
+    overload: Annotated[
+        int | None,
+        typer.Option(
+            "--overload",
+            help="CPU hogs beside the deployed point at the largest load, measured again (default 2; 0: skip).",
+        ),
+    ] = None,
+    peer_repeats: Annotated[
+        int | None,
+        typer.Option("--peer-repeats", help="Runs of each forwarder in the peer comparison (default 3)."),
+    ] = None,
+    peer_duration: Annotated[
+        float | None, typer.Option("--peer-duration", help="Seconds per run of each forwarder (default 2.5).")
+    ] = None,
     hops: Annotated[
         bool,
         typer.Option("--hops", help="Also time each stage of the first vehicle (subscribes to its keys)."),
@@ -80,8 +94,9 @@ def bench(
         Path | None, typer.Option("--from", help="Re-render the tables (and docs) from a stored JSON result.")
     ] = None,
 ) -> None:
-    """Measure the arena: end-to-end latency, loss, CPU and memory at 1–20 vehicles and 180/360 Hz, beside
-    a bare Zenoh and a UDP chain of the same processes, the gateway beside MAVProxy, and per-stage costs."""
+    """Measure the arena: end-to-end latency, loss, vision rate, CPU and memory at 1 and 20 vehicles × 180 Hz
+    (as deployed and overloaded too), beside a bare Zenoh and a UDP chain of the same processes, the
+    gateway beside its floors and MAVProxy, and per-stage costs."""
     from bench import run as bench_mod
 
     if rerender is not None:
@@ -107,6 +122,12 @@ def bench(
         changes["duration"] = duration
     if warmup is not None:
         changes["warmup"] = warmup
+    if overload is not None:
+        changes["overload"] = overload
+    if peer_repeats is not None:
+        changes["peer_repeats"] = peer_repeats
+    if peer_duration is not None:
+        changes["peer_duration"] = peer_duration
     write_docs = (not quick) if docs is None else docs
     changes["docs"] = docs_file if write_docs else None
     options = bench_mod.BenchOptions.quick_options(**changes) if quick else bench_mod.BenchOptions(**changes)

@@ -132,6 +132,11 @@ def _zenoh_session(connect: Sequence[str]) -> Any:
     return zenoh.open(zenoh_config(ZenohSpec(mode="peer", connect=tuple(connect))))
 
 
+def kept(fn: int, keep: float) -> bool:
+    """Whether a relay passing the share ``keep`` of its messages (evenly, by frame number) passes ``fn``."""
+    return keep >= 1.0 or int(fn * keep) != int((fn - 1) * keep)
+
+
 def run_relay(
     source: str,
     target: str,
@@ -140,12 +145,14 @@ def run_relay(
     fanout: int = 0,
     size: int = 0,
     inline: bool = False,
+    keep: float = 1.0,
     stop: threading.Event,
 ) -> int:
     """Forward every message from ``source`` to ``target`` until ``stop``; messages forwarded.
 
     ``fanout`` > 0: each input becomes ``fanout`` messages, one per vehicle index (the ingest's place);
-    otherwise the vehicle index is read from the message.
+    otherwise the vehicle index is read from the message.  ``keep`` < 1 passes only that share of the
+    frames, evenly (:func:`kept`): a decimator's place.
     """
     out = _Output(target, connect, size)
     sent = 0
@@ -157,8 +164,14 @@ def run_relay(
             for i in range(fanout):
                 out.send(i, HEADER.pack(fn, i))
             sent += fanout
+        elif len(data) >= HEADER.size:
+            fn, i = HEADER.unpack_from(data)
+            if keep < 1.0 and not kept(fn, keep):
+                return
+            out.send(i, data)
+            sent += 1
         else:
-            out.send(HEADER.unpack_from(data)[1] if len(data) >= HEADER.size else 0, data)
+            out.send(0, data)
             sent += 1
 
     kind, _, rest = source.partition(":")
@@ -221,6 +234,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     rel.add_argument("--fanout", type=int, default=0)
     rel.add_argument("--size", type=int, default=0)
     rel.add_argument("--inline", action="store_true", help="Forward inside the Zenoh callback.")
+    rel.add_argument("--keep", type=float, default=1.0, help="Share of the frames passed (a decimator).")
     args = parser.parse_args(argv)
     stop = _stop_event()
     if args.role == "source":
@@ -233,6 +247,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             fanout=args.fanout,
             size=args.size,
             inline=args.inline,
+            keep=args.keep,
             stop=stop,
         )
 

@@ -6,8 +6,9 @@ socket receives it (the same datagram the ingest receives, at the same instant o
 MAVLink frame the gateway sends to the harness's vehicle socket.  The harness's own scheduling therefore
 never enters a figure: a :class:`Collector` thread only drains the sockets and keeps ``(stamp, bytes)``.
 
-CPU is read from ``/proc``: ``utime + stime`` of ``/proc/<pid>/stat`` (clock ticks, every thread, the
-ended ones too), or for short windows the sum of ``/proc/<pid>/task/<tid>/schedstat`` (nanoseconds).
+CPU is read from ``/proc``: the sum of ``/proc/<pid>/task/<tid>/schedstat`` (nanoseconds, the threads
+alive now), checked against ``utime + stime`` of ``/proc/<pid>/stat`` (clock ticks, every thread, the
+ended ones too), which it falls back to when a thread ended in the window.
 Memory is ``VmRSS`` of ``/proc/<pid>/status``.
 """
 
@@ -220,6 +221,7 @@ class Child:
     proc: ChildProcess
     log: Path
     cpu_mark: int | None = None
+    cpu_mark_precise: int | None = None
     mark_t: float = 0.0
 
     @property
@@ -271,20 +273,28 @@ class ProcessSet:
         """Start a CPU measurement window for every child."""
         now = time.monotonic()
         for c in self.children:
-            c.cpu_mark, c.mark_t = cpu_ns(c.pid), now
+            c.cpu_mark, c.cpu_mark_precise, c.mark_t = cpu_ns(c.pid), cpu_ns(c.pid, precise=True), now
 
     def usage(self) -> dict[str, dict[str, Any]]:
-        """Per child since :meth:`mark`: ``cpu`` (% of one core), ``rss`` (bytes), ``role``, ``pid``."""
+        """Per child since :meth:`mark`: ``cpu`` (% of one core), ``rss`` (bytes), ``role``, ``pid``.
+
+        CPU from the threads' schedstat (ns), unless that disagrees with the clock ticks of
+        ``/proc/<pid>/stat`` by more than a few ticks and a quarter (a thread ended in the window and
+        took its time with it): then from the ticks."""
         now = time.monotonic()
         out: dict[str, dict[str, Any]] = {}
+        tick = 1_000_000_000 // _CLK_TCK
         for c in self.children:
-            end = cpu_ns(c.pid)
+            end, end_precise = cpu_ns(c.pid), cpu_ns(c.pid, precise=True)
             dt = now - c.mark_t
-            cpu = (
-                100.0 * (end - c.cpu_mark) / 1e9 / dt
-                if end is not None and c.cpu_mark is not None and dt > 0
-                else math.nan
-            )
+            used: float | None = None
+            if end is not None and c.cpu_mark is not None:
+                used = end - c.cpu_mark
+                if end_precise is not None and c.cpu_mark_precise is not None:
+                    precise = end_precise - c.cpu_mark_precise
+                    if precise >= 0 and abs(precise - used) <= max(3 * tick, 0.25 * used):
+                        used = precise
+            cpu = 100.0 * used / 1e9 / dt if used is not None and dt > 0 else math.nan
             out[c.name] = {"role": c.role, "pid": c.pid, "cpu": cpu, "rss": rss_bytes(c.pid) or 0}
         return out
 

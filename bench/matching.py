@@ -366,18 +366,26 @@ def analyze_floor(
     outputs: Mapping[int, Sequence[tuple[int, bytes]]],
     t0: int,
     t1: int,
+    *,
+    keep: float | None = None,
 ) -> dict[str, Any]:
-    """Latencies (ns) and losses of a floor chain: messages carry their frame number."""
-    from bench.floor import HEADER
+    """Latencies (ns) and losses of a floor chain: messages carry their frame number.
+
+    ``keep``: the share of frames a decimating relay passed (:func:`bench.floor.kept`); only those are
+    expected."""
+    from bench.floor import HEADER, kept
 
     stamps: dict[int, int] = {}
     for stamp, data in frames:
         if len(data) >= 8:
             stamps.setdefault(struct.unpack_from("<Q", data)[0], stamp)
     window = {fn for fn, s in stamps.items() if t0 <= s <= t1}
+    if keep is not None:
+        window = {fn for fn in window if kept(fn, keep)}
     latencies: list[int] = []
     delivered = duplicates = 0
-    for records in outputs.values():
+    per_vehicle: dict[int, dict[str, int]] = {}
+    for v, records in outputs.items():
         seen: set[int] = set()
         for stamp, data in records:
             if len(data) < HEADER.size:
@@ -391,6 +399,7 @@ def analyze_floor(
             seen.add(fn)
             latencies.append(stamp - stamps[fn])
         delivered += len(seen)
+        per_vehicle[v] = {"expected": len(window), "delivered": len(seen)}
     expected = len(window) * len(outputs)
     return {
         "latencies": latencies,
@@ -399,4 +408,5 @@ def analyze_floor(
         "lost": expected - delivered,
         "duplicates": duplicates,
         "frames": len(window),
+        "per_vehicle": per_vehicle,
     }

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from arena_common.core import wire
-from arena_common.mavlink import px4
+from arena_common.mavlink import fastframe, px4
 from arena_common.mocap import natnet
 
 __all__ = ["per_call_us", "run_micro", "wire_examples"]
@@ -260,6 +260,17 @@ def _mavlink(scale: float) -> dict[str, float]:
         "ODOMETRY encode + pack (pymavlink only)": per_call_us(
             lambda: mav.odometry_encode(**args).pack(mav), n
         ),
+        "ODOMETRY args + frame (the gateway's, fastframe)": per_call_us(
+            lambda: fastframe.ODOMETRY.frame(
+                fastframe.odometry_payload(
+                    px4.odometry_args(usec, pose.p, pose.q, pose.v, angular_velocity_frd=pose.w)
+                ),
+                0,
+                245,
+                191,
+            ),
+            n,
+        ),
         "ODOMETRY parse (pymavlink)": per_call_us(lambda: parser.parse_buffer(raw), n),
         "bytes": float(len(raw)),
     }
@@ -305,7 +316,7 @@ def _stages(scale: float) -> dict[str, float]:
         pose = wire.decode_any("arena/d1/vision", pose_raw, enc_p)
         assert isinstance(pose, wire.Pose)
         args = px4.odometry_args(pose.t // 1000, pose.p, pose.q, pose.v, angular_velocity_frd=pose.w)
-        return bytes(mav.odometry_encode(**args).pack(mav))
+        return fastframe.ODOMETRY.frame(fastframe.odometry_payload(args), mav.seq, 245, 191)
 
     return {
         "ingest: encode MocapPose (per body)": per_call_us(

@@ -1,33 +1,49 @@
-"""Peer comparison of ``make bench``: the gateway beside MAVProxy, forwarding the same vision stream.
+"""Peer comparison of ``make bench``: the gateway beside its two floors and MAVProxy, forwarding the same
+vision stream.
 
-Both get a stream of poses at the same rate and send ODOMETRY to a UDP socket of the harness, which stamps
-its arrival in the kernel:
+Every forwarder gets a stream of poses at the same rate and sends ODOMETRY to its own UDP socket of the
+harness, which stamps each arrival in the kernel:
 
 - **gateway** — a private router and one ``services.mavlink_gateway`` process; the harness publishes each
-  :class:`~arena_common.core.wire.Pose` on ``arena/d1/vision`` (its ``t`` is the send time, so ODOMETRY's
-  ``time_usec`` names it) and the gateway encodes and sends ODOMETRY;
+  :class:`~arena_common.core.wire.Pose` on ``arena/d1/vision`` (vision lane, as the arena does; its ``t``
+  is the send time, so ODOMETRY's ``time_usec`` names it) and the gateway encodes and sends ODOMETRY;
+- **floor-zenoh** — the same, with :mod:`bench.forwarders`' Zenoh forwarder in the gateway's place: the
+  same config and session settings, the Zenoh receive, a msgspec decode and one ready-made ODOMETRY
+  datagram per pose — the least the gateway's path can cost in Python over Zenoh;
+- **floor-udp** — :mod:`bench.forwarders`' UDP forwarder: ready-made ODOMETRY frames in, the same bytes
+  out (MAVProxy's path, bytes only);
 - **MAVProxy** — ``mavproxy.py --master udpin:… --out udpout:… --daemon --non-interactive`` with its
-  default modules, as users run it; the harness sends ready-made ODOMETRY frames to its master port and
-  MAVProxy forwards them.
+  default modules, as users run it, fed the same ready-made ODOMETRY frames.
 
-Latency is send → arrival.  CPU per message is the process's CPU over the stream divided by the
-messages it forwarded (``total``), and the same less its idle CPU over the same time (``marginal``).
+All four run side by side for the whole comparison (started once; the Zenoh ones each in its own arena,
+so that no pose reaches two of them); each is then measured ``repeats`` times, one at a time, the order
+reversed on every other round so that a drift of the machine's load weighs on all alike.  Each round
+begins with one idle window in which none gets a message (their idle CPU).
+
+Latency is send → arrival.  CPU per message is the process's CPU over the stream (schedstat, ns) divided
+by the messages it forwarded (``total``), and the same less its idle CPU over the same time
+(``marginal``).  The summary of each forwarder is the median of its runs with their min–max spread.
 """
 
 from __future__ import annotations
 
 import os
 import shutil
+import socket
+import statistics
 import sys
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from arena_common.bus.session import open_bus
+from arena_common.bus.session import Bus, Lane, open_bus
 from arena_common.core import keys, wire
 from arena_common.core.config import load as load_config
-from arena_common.mavlink import px4
+from arena_common.core.errors import ArenaError
+from arena_common.mavlink import fastframe, px4
 from bench.harness import (
     BenchError,
     Collector,
@@ -45,7 +61,10 @@ from bench.harness import (
 from bench.matching import odometry_of
 from bench.pipeline import HOST, RunSettings, _env, router_port, write_config
 
-__all__ = ["mavproxy_command", "run_peers"]
+__all__ = ["FORWARDERS", "mavproxy_command", "run_peers", "summarise"]
+
+FORWARDERS = ("gateway", "floor-zenoh", "floor-udp", "mavproxy")
+WARM = 0.3  # s of stream before each measured window
 
 
 def mavproxy_command() -> str | None:
@@ -54,16 +73,6 @@ def mavproxy_command() -> str | None:
     if local.exists():
         return str(local)
     return shutil.which("mavproxy.py")
-
-
-def _cpu_window(pid: int, seconds: float) -> float:
-    """CPU seconds ``pid`` used over the next ``seconds``."""
-    a = cpu_ns(pid, precise=True)
-    time.sleep(seconds)
-    b = cpu_ns(pid, precise=True)
-    if a is None or b is None:
-        raise BenchError(f"process {pid} went away while measuring")
-    return (b - a) / 1e9
 
 
 def _figures(
@@ -98,104 +107,134 @@ def _figures(
     }
 
 
-def _run_gateway(rate: float, settings: RunSettings) -> dict[str, Any]:
-    workdir = settings.logs / "peer-gateway"
-    sock = stamped_socket(0)
-    port = int(sock.getsockname()[1])
+# -- the forwarders ------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Forwarder:
+    """One forwarder under test: its process, how to give it message ``k``, and what it did."""
+
+    name: str
+    procs: ProcessSet
+    pid: int
+    send: Callable[[int], tuple[int, int]]  # k → (ODOMETRY time_usec it will carry, send time ns)
+    runs: list[dict[str, Any]] = field(default_factory=list)
+    error: str = ""
+
+
+def _pose_sender(bus: Bus) -> Callable[[int], tuple[int, int]]:
+    pub = bus.stream_publisher(keys.vision("d1"), wire.Pose, Lane.VISION)
+    q = (1.0, 0.0, 0.0, 0.0)
+
+    def send(k: int) -> tuple[int, int]:
+        now = time.time_ns()
+        # A fresh t per pose: the gateway sends only poses newer than the last one, at most 0.1 s old.
+        pub.put(wire.Pose(t=now, p=(0.001 * (k % 1000), 0.5, -1.0), q=q, ok=True, fn=k, tp=now))
+        return now // 1000, now
+
+    return send
+
+
+def _frame_sender(tx: socket.socket, port: int) -> Callable[[int], tuple[int, int]]:
+    state = {"seq": 0}
+
+    def send(k: int) -> tuple[int, int]:
+        usec = time.time_ns() // 1000
+        args = px4.odometry_args(usec, (0.001 * (k % 1000), 0.5, -1.0), (1.0, 0.0, 0.0, 0.0))
+        data = fastframe.ODOMETRY.frame(fastframe.odometry_payload(args), state["seq"], 1, 1)
+        state["seq"] = (state["seq"] + 1) & 0xFF
+        t_send = time.time_ns()  # after encoding, as a MAVLink source would send it
+        tx.sendto(data, ("127.0.0.1", port))
+        return usec, t_send
+
+    return send
+
+
+def _zenoh_arena(
+    name: str, settings: RunSettings, port: int, argv: Callable[[Path], list[str]], role: str
+) -> tuple[ProcessSet, Bus, Any]:
+    """A private router, the forwarder (``argv(config)``) and the harness's session, in ``name``'s arena."""
+    workdir = settings.logs / "peer" / name
     path = write_config(workdir, 1, 180.0, [port])
     cfg = load_config(path)
-    common = ["-c", str(path), "--host", HOST, "--log-level", "WARNING"]
     procs = ProcessSet(workdir, env=_env(settings.repo))
-    collector = Collector({"out": sock})
-    bus = None
     try:
-        collector.start()
         procs.spawn(
             "router",
             "router",
             python_module("arena_common.cli", "router", "-c", str(path), "--host", HOST),
             settings.repo,
         )
-        wait_port(router_port(cfg), 30, "the Zenoh router", procs)
-        bus = open_bus(cfg.zenoh)
-        gw = procs.spawn(
+        wait_port(router_port(cfg), 30, f"the Zenoh router of {name}", procs)
+        child = procs.spawn(name, role, argv(path), settings.repo)
+        return procs, open_bus(cfg.zenoh), child
+    except BaseException:
+        procs.stop()
+        raise
+
+
+def _start(
+    settings: RunSettings, ports: dict[str, int], tx: socket.socket, buses: list[Bus]
+) -> tuple[dict[str, _Forwarder], dict[str, str]]:
+    """Start every forwarder; those that cannot run are returned apart with the reason."""
+    fwds: dict[str, _Forwarder] = {}
+    unavailable: dict[str, str] = {}
+    common = ["--host", HOST]
+
+    def gateway() -> _Forwarder:
+        procs, bus, child = _zenoh_arena(
             "gateway",
+            settings,
+            ports["gateway"],
+            lambda p: python_module(
+                "services.mavlink_gateway", "-c", str(p), *common, "--log-level", "WARNING", "--vehicle", "d1"
+            ),
             "gateway",
-            python_module("services.mavlink_gateway", *common, "--vehicle", "d1"),
+        )
+        buses.append(bus)
+        return _Forwarder("gateway", procs, child.pid, _pose_sender(bus))
+
+    def floor_zenoh() -> _Forwarder:
+        out = str(ports["floor-zenoh"])
+        procs, bus, child = _zenoh_arena(
+            "floor-zenoh",
+            settings,
+            ports["floor-zenoh"],
+            lambda p: python_module("bench.forwarders", "zenoh", "-c", str(p), *common, "--out", out),
+            "floor",
+        )
+        buses.append(bus)
+        return _Forwarder("floor-zenoh", procs, child.pid, _pose_sender(bus))
+
+    def floor_udp() -> _Forwarder:
+        procs = ProcessSet(settings.logs / "peer" / "floor-udp", env=_env(settings.repo))
+        listen = free_port()
+        child = procs.spawn(
+            "floor-udp",
+            "floor",
+            python_module(
+                "bench.forwarders", "udp", "--listen", str(listen), "--out", str(ports["floor-udp"])
+            ),
             settings.repo,
         )
-        pub = bus.stream_publisher(keys.vision("d1"), wire.Pose)
-        q = (1.0, 0.0, 0.0, 0.0)
+        return _Forwarder("floor-udp", procs, child.pid, _frame_sender(tx, listen))
 
-        def pose(k: int) -> tuple[int, wire.Pose]:
-            now = time.time_ns()
-            # A fresh t per pose: the gateway sends only poses newer than the last one, at most 0.1 s old.
-            return now, wire.Pose(t=now, p=(0.001 * (k % 1000), 0.5, -1.0), q=q, ok=True, fn=k, tp=now)
-
-        def flowing() -> bool:
-            pub.put(pose(0)[1])
-            return any(odometry_of(d) is not None for _, d in collector.take()["out"])
-
-        wait_until(flowing, settings.start_timeout, "ODOMETRY from the gateway", procs)
-        time.sleep(0.5)
-        duration = settings.duration
-        idle = _cpu_window(gw.pid, settings.idle) / settings.idle if settings.idle > 0 else 0.0
-        collector.clear()
-        sent: dict[int, int] = {}
-        stop = threading.Event()
-        a = cpu_ns(gw.pid, precise=True)
-        t0 = time.monotonic()
-        for k in iter_schedule(rate, stop, duration):
-            t_send, p = pose(k + 1)
-            pub.put(p)
-            sent[p.t // 1000] = t_send
-        elapsed = time.monotonic() - t0
-        b = cpu_ns(gw.pid, precise=True)
-        time.sleep(settings.drain)
-        procs.check_alive()
-        if a is None or b is None:
-            raise BenchError("the gateway went away while measuring")
-        return _figures(
-            sent,
-            collector.take()["out"],
-            (b - a) / 1e9,
-            idle * elapsed,
-            elapsed,
-            rss_bytes(gw.pid) or 0,
-        )
-    finally:
-        procs.stop()
-        if bus is not None:
-            bus.close()
-        collector.close()
-
-
-def _run_mavproxy(rate: float, settings: RunSettings, command: str) -> dict[str, Any]:
-    os.environ.setdefault("MAVLINK20", "1")
-    from arena_common.mavlink.link import mavlink2
-
-    workdir = settings.logs / "peer-mavproxy"
-    sock = stamped_socket(0)
-    out_port = int(sock.getsockname()[1])
-    master = free_port()
-    procs = ProcessSet(workdir, env=_env(settings.repo))
-    collector = Collector({"out": sock})
-    import socket as socket_mod
-
-    tx = socket_mod.socket(socket_mod.AF_INET, socket_mod.SOCK_DGRAM)
-    tx.bind(("127.0.0.1", 0))
-    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
-    try:
-        collector.start()
+    def mavproxy() -> _Forwarder:
+        command = mavproxy_command()
+        if command is None:
+            raise BenchError("mavproxy.py is not installed (pip install mavproxy)")
+        workdir = settings.logs / "peer" / "mavproxy"
         workdir.mkdir(parents=True, exist_ok=True)
-        mp = procs.spawn(
+        procs = ProcessSet(workdir, env={**_env(settings.repo), "MAVLINK20": "1"})
+        master = free_port()
+        child = procs.spawn(
             "mavproxy",
             "mavproxy",
             [
                 sys.executable,
                 command,
                 f"--master=udpin:127.0.0.1:{master}",
-                f"--out=udpout:127.0.0.1:{out_port}",
+                f"--out=udpout:127.0.0.1:{ports['mavproxy']}",
                 "--daemon",
                 "--non-interactive",
                 "--nowait",
@@ -203,70 +242,186 @@ def _run_mavproxy(rate: float, settings: RunSettings, command: str) -> dict[str,
             ],
             workdir,
         )
+        return _Forwarder("mavproxy", procs, child.pid, _frame_sender(tx, master))
 
-        def frame(k: int) -> tuple[int, bytes]:
-            now = time.time_ns()
-            args = px4.odometry_args(now // 1000, (0.001 * (k % 1000), 0.5, -1.0), (1.0, 0.0, 0.0, 0.0))
-            return now, bytes(mav.odometry_encode(**args).pack(mav))
+    starters: dict[str, Callable[[], _Forwarder]] = {
+        "gateway": gateway,
+        "floor-zenoh": floor_zenoh,
+        "floor-udp": floor_udp,
+        "mavproxy": mavproxy,
+    }
+    for name, start in starters.items():
+        try:
+            fwds[name] = start()
+        except (BenchError, ArenaError) as exc:
+            unavailable[name] = str(exc)
+    return fwds, unavailable
 
-        def flowing() -> bool:
-            tx.sendto(frame(0)[1], ("127.0.0.1", master))
-            return any(odometry_of(d) is not None for _, d in collector.take()["out"])
 
-        wait_until(flowing, settings.start_timeout, "MAVProxy to forward ODOMETRY", procs)
+def _wait_flowing(fwd: _Forwarder, collector: Collector, timeout: float) -> None:
+    def flowing() -> bool:
+        fwd.send(0)
+        return any(odometry_of(d) is not None for _, d in collector.take()[fwd.name])
+
+    wait_until(flowing, timeout, f"ODOMETRY from {fwd.name}", fwd.procs)
+
+
+def _window(
+    fwd: _Forwarder, collector: Collector, rate: float, duration: float, idle_rate: float, drain: float
+) -> dict[str, Any]:
+    """One measurement of ``fwd``: a short warm-up of the stream, then ``duration`` s measured."""
+    stop = threading.Event()
+    for _ in iter_schedule(rate, stop, WARM):
+        fwd.send(0)
+    time.sleep(0.05)
+    collector.clear()
+    sent: dict[int, int] = {}
+    a = cpu_ns(fwd.pid, precise=True)
+    t0 = time.monotonic()
+    for k in iter_schedule(rate, stop, duration):
+        usec, t_send = fwd.send(k + 1)
+        sent[usec] = t_send
+    elapsed = time.monotonic() - t0
+    b = cpu_ns(fwd.pid, precise=True)
+    time.sleep(drain)
+    fwd.procs.check_alive()
+    if a is None or b is None:
+        raise BenchError(f"{fwd.name} went away while measuring")
+    fig = _figures(
+        sent, collector.take()[fwd.name], (b - a) / 1e9, idle_rate * elapsed, elapsed, rss_bytes(fwd.pid) or 0
+    )
+    fig["load"] = os.getloadavg()[0]
+    return fig
+
+
+def _idle_rates(fwds: dict[str, _Forwarder], seconds: float) -> dict[str, float]:
+    """Each forwarder's idle CPU (s per s), measured together over ``seconds`` with no message flowing."""
+    if seconds <= 0:
+        return dict.fromkeys(fwds, 0.0)
+    before = {name: cpu_ns(f.pid, precise=True) for name, f in fwds.items()}
+    time.sleep(seconds)
+    out: dict[str, float] = {}
+    for name, f in fwds.items():
+        a, b = before[name], cpu_ns(f.pid, precise=True)
+        out[name] = (b - a) / 1e9 / seconds if a is not None and b is not None else 0.0
+    return out
+
+
+def _spread(values: list[float]) -> list[float]:
+    finite = [v for v in values if v == v]
+    return [min(finite), max(finite)] if finite else [float("nan"), float("nan")]
+
+
+def _median(values: list[float]) -> float:
+    finite = [v for v in values if v == v]
+    return statistics.median(finite) if finite else float("nan")
+
+
+def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """A forwarder's runs as medians (``cpu_us_per_msg``, latency ``p50``/``p99``…) with min–max spreads."""
+    lat = [r["latency"] for r in runs]
+    return {
+        "repeats": len(runs),
+        "sent": sum(r["sent"] for r in runs),
+        "forwarded": sum(r["forwarded"] for r in runs),
+        "lost": sum(r["lost"] for r in runs),
+        "latency": {
+            "n": sum(x["n"] for x in lat),
+            "p50": _median([x["p50"] for x in lat]),
+            "p99": _median([x["p99"] for x in lat]),
+            "max": max((x["max"] for x in lat if x["max"] == x["max"]), default=float("nan")),
+        },
+        "cpu_us_per_msg": _median([r["cpu_us_per_msg"] for r in runs]),
+        "marginal_cpu_us_per_msg": _median([r["marginal_cpu_us_per_msg"] for r in runs]),
+        "cpu_percent": _median([r["cpu_percent"] for r in runs]),
+        "idle_cpu_percent": _median([r["idle_cpu_percent"] for r in runs]),
+        "spread": {
+            "cpu_us_per_msg": _spread([r["cpu_us_per_msg"] for r in runs]),
+            "marginal_cpu_us_per_msg": _spread([r["marginal_cpu_us_per_msg"] for r in runs]),
+            "p50": _spread([x["p50"] for x in lat]),
+            "p99": _spread([x["p99"] for x in lat]),
+        },
+        "load": [r["load"] for r in runs],
+        "rss": max((r["rss"] for r in runs), default=0),
+        "runs": runs,
+    }
+
+
+def _ratio(a: dict[str, Any], b: dict[str, Any], key: str) -> float:
+    x, y = a.get(key), b.get(key)
+    if x is None or y is None or not y or x != x or y != y:
+        return float("nan")
+    return float(x / y)
+
+
+def run_peers(rate: float, settings: RunSettings, repeats: int = 3) -> dict[str, Any]:
+    """The gateway, its two floors and MAVProxy, each forwarding ``rate`` Hz of vision for
+    ``settings.duration`` s, ``repeats`` times in alternating order."""
+    if repeats < 1:
+        raise BenchError("the peer comparison needs at least one repetition")
+    out: dict[str, Any] = {"rate": rate, "duration": settings.duration, "repeats": repeats}
+    socks = {name: stamped_socket(0) for name in FORWARDERS}
+    ports = {name: int(s.getsockname()[1]) for name, s in socks.items()}
+    collector = Collector(socks)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tx.bind(("127.0.0.1", 0))
+    buses: list[Bus] = []
+    fwds: dict[str, _Forwarder] = {}
+    try:
+        collector.start()
+        fwds, unavailable = _start(settings, ports, tx, buses)
+        for name, fwd in list(fwds.items()):
+            try:
+                _wait_flowing(fwd, collector, settings.start_timeout)
+            except BenchError as exc:
+                unavailable[name] = str(exc)
+                fwd.procs.stop()
+                del fwds[name]
         time.sleep(0.5)
-        duration = settings.duration
-        idle = _cpu_window(mp.pid, settings.idle) / settings.idle if settings.idle > 0 else 0.0
-        collector.clear()
-        # Each frame is encoded just before it is sent; its send time is taken after encoding.
-        sent: dict[int, int] = {}
-        stop = threading.Event()
-        a = cpu_ns(mp.pid, precise=True)
-        t0 = time.monotonic()
-        for k in iter_schedule(rate, stop, duration):
-            _, data = frame(k + 1)
-            od = odometry_of(data)
-            assert od is not None
-            sent[od[0]] = time.time_ns()
-            tx.sendto(data, ("127.0.0.1", master))
-        elapsed = time.monotonic() - t0
-        b = cpu_ns(mp.pid, precise=True)
-        time.sleep(settings.drain)
-        procs.check_alive()
-        if a is None or b is None:
-            raise BenchError("MAVProxy went away while measuring")
-        return _figures(
-            sent,
-            collector.take()["out"],
-            (b - a) / 1e9,
-            idle * elapsed,
-            elapsed,
-            rss_bytes(mp.pid) or 0,
-        )
+        order = [n for n in FORWARDERS if n in fwds]
+        out["order"] = order
+        for rnd in range(repeats):
+            live = {n: f for n, f in fwds.items() if not f.error}
+            idle = _idle_rates(live, settings.idle)
+            for name in order if rnd % 2 == 0 else order[::-1]:
+                fwd = fwds[name]
+                if fwd.error:
+                    continue
+                try:
+                    fwd.runs.append(
+                        _window(fwd, collector, rate, settings.duration, idle[name], settings.drain)
+                    )
+                except BenchError as exc:
+                    fwd.error = str(exc)
+        for name in FORWARDERS:
+            fwd_or_none = fwds.get(name)
+            if fwd_or_none is None:
+                out[name] = {"unavailable": unavailable.get(name, "not started")}
+            elif not fwd_or_none.runs:
+                out[name] = {"unavailable": fwd_or_none.error or "no run"}
+            else:
+                out[name] = summarise(fwd_or_none.runs)
+                if fwd_or_none.error:
+                    out[name]["error"] = fwd_or_none.error
     finally:
-        procs.stop()
+        for fwd in fwds.values():
+            fwd.procs.stop()
+        for bus in buses:
+            bus.close()
         tx.close()
         collector.close()
-
-
-def run_peers(rate: float, settings: RunSettings) -> dict[str, Any]:
-    """The gateway and MAVProxy, each forwarding ``rate`` Hz of vision for ``settings.duration`` s."""
-    out: dict[str, Any] = {"rate": rate, "duration": settings.duration}
-    out["gateway"] = _run_gateway(rate, settings)
-    command = mavproxy_command()
-    if command is None:
-        out["mavproxy"] = {"unavailable": "mavproxy.py is not installed (pip install mavproxy)"}
-    else:
-        try:
-            out["mavproxy"] = _run_mavproxy(rate, settings, command)
-        except BenchError as exc:
-            out["mavproxy"] = {"unavailable": str(exc)}
-    g, m = out["gateway"], out["mavproxy"]
-    if "unavailable" not in m and m.get("cpu_us_per_msg") and g.get("cpu_us_per_msg"):
-        out["cpu_ratio"] = g["cpu_us_per_msg"] / m["cpu_us_per_msg"]
-        out["marginal_cpu_ratio"] = (
-            g["marginal_cpu_us_per_msg"] / m["marginal_cpu_us_per_msg"]
-            if m["marginal_cpu_us_per_msg"]
-            else float("nan")
-        )
+    g, m, fz = out["gateway"], out["mavproxy"], out["floor-zenoh"]
+    if "unavailable" not in g and "unavailable" not in m:
+        out["cpu_ratio"] = _ratio(g, m, "cpu_us_per_msg")
+        out["marginal_cpu_ratio"] = _ratio(g, m, "marginal_cpu_us_per_msg")
+        pairs = [
+            a["cpu_us_per_msg"] / b["cpu_us_per_msg"]
+            for a, b in zip(g["runs"], m["runs"], strict=False)
+            if b["cpu_us_per_msg"]
+        ]
+        out["cpu_ratio_spread"] = _spread(pairs)
+    if "unavailable" not in g and "unavailable" not in fz:
+        out["floor_ratio"] = _ratio(g, fz, "cpu_us_per_msg")
+    if "unavailable" not in fz and "unavailable" not in m:
+        out["floor_mavproxy_ratio"] = _ratio(fz, m, "cpu_us_per_msg")
     return out

@@ -11,7 +11,10 @@ How each ODOMETRY is matched to its frame, and what is lost: :mod:`bench.matchin
 
 **Floors.** The same topology with :mod:`bench.floor` processes that only move bytes (of the
 arena payloads' sizes), over Zenoh with the arena's settings, or over UDP; messages carry their frame
-number, so matching is exact.
+number, so matching is exact.  They run from :mod:`bench.floor_run` with this module's helpers.
+
+Every point also says how many poses per second each vehicle received over its window (the least, the
+median and the most: :func:`vision_rates`).
 """
 
 from __future__ import annotations
@@ -19,6 +22,8 @@ from __future__ import annotations
 import math
 import os
 import random
+import statistics
+import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -31,7 +36,6 @@ from arena_common.core.config import load as load_config
 from arena_common.mocap import natnet
 from bench.feeds import StatsWatcher, TruthFeeder
 from bench.harness import (
-    BenchError,
     Collector,
     ProcessSet,
     free_port,
@@ -46,11 +50,9 @@ from bench.matching import (
     VISION_RATE,
     HopWatcher,
     analyze_arena,
-    analyze_floor,
     decode_frames,
     hop_breakdown,
     odometry_of,
-    payload_sizes,
 )
 
 __all__ = [
@@ -58,7 +60,7 @@ __all__ = [
     "PointResult",
     "RunSettings",
     "run_arena",
-    "run_floor",
+    "vision_rates",
     "write_config",
 ]
 
@@ -104,6 +106,10 @@ class PointResult:
     profile: dict[str, Any] = field(default_factory=dict)
     hops: dict[str, dict[str, float]] = field(default_factory=dict)
     load: float = math.nan  # the machine's 1-minute load average at the end of the measurement
+    # Poses per second each vehicle's socket received over the window (frames of the window that arrived):
+    # the least, the median and the most over the vehicles.
+    vision_rate: dict[str, float] = field(default_factory=dict)
+    hogs: int = 0  # CPU hogs run beside the chain during the window (the overload point)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -179,8 +185,24 @@ def router_port(cfg: ArenaConfig) -> int:
     return int(cfg.zenoh.router_listen[0].rsplit(":", 1)[1])
 
 
+def vision_rates(per_vehicle: Mapping[Any, Mapping[str, int]], n: int, window_s: float) -> dict[str, float]:
+    """The least, median and most poses per second a vehicle received over a ``window_s`` s window
+    (``per_vehicle[v]["delivered"]``; a vehicle missing from it received none)."""
+    if window_s <= 0 or n <= 0:
+        return {}
+    rates = sorted(per_vehicle.get(v, {}).get("delivered", 0) / window_s for v in range(n))
+    return {"min": rates[0], "median": statistics.median(rates), "max": rates[-1]}
+
+
 def _result(
-    chain: str, n: int, rate: float, found: Mapping[str, Any], usage: dict[str, Any], **extra: Any
+    chain: str,
+    n: int,
+    rate: float,
+    found: Mapping[str, Any],
+    usage: dict[str, Any],
+    *,
+    window_s: float = 0.0,
+    **extra: Any,
 ) -> PointResult:
     """A load point from an analysis (``analyze_arena`` or ``analyze_floor``) and the processes' usage."""
     return PointResult(
@@ -194,6 +216,7 @@ def _result(
         duplicates=found["duplicates"],
         per_service=usage,
         load=os.getloadavg()[0],
+        vision_rate=vision_rates(found.get("per_vehicle", {}), n, window_s),
         **extra,
     )
 
@@ -270,6 +293,7 @@ def run_arena(
     settings: RunSettings,
     *,
     realistic_vision: float | None = None,
+    overload: int = 0,
     on_point: Callable[[PointResult], None] | None = None,
     decimate: str = "downsampler",
 ) -> list[PointResult]:
@@ -278,8 +302,11 @@ def run_arena(
     Every pose goes to the autopilot (vision rate :data:`VISION_RATE`).  With ``realistic_vision``, the
     decimators are then restarted at that vision rate and one more point runs at the first rate (chain
     ``arena-v<rate>``): the pipeline's CPU as deployed, its latencies and losses against what the
-    decimator passes by design.  ``decimate`` is the config's ``[pipeline] decimate``: ``downsampler``
-    (one process per vehicle; chain ``arena``) or ``transform`` (chain ``arena-td``).
+    decimator passes by design.  With ``overload`` as well, that point runs once more with ``overload``
+    CPU hogs (``while True: pass``, nice 0) beside it for the warm-up and the window (chain
+    ``arena-v<rate>-loaded``): whether every vehicle's vision survives a computer that cannot keep up.
+    ``decimate`` is the config's ``[pipeline] decimate``: ``downsampler`` (one process per vehicle; chain
+    ``arena``) or ``transform`` (chain ``arena-td``).
     """
     from arena_common.sim.natnet_server import TICK_FREQUENCY
     from services.frame_transform import frame_transform
@@ -337,7 +364,9 @@ def run_arena(
             procs,
         )
 
-    def measure(rate: float, chain: str, vision_rate: float, idle: dict[str, dict[str, Any]]) -> PointResult:
+    def measure(
+        rate: float, chain: str, vision_rate: float, idle: dict[str, dict[str, Any]], hogs: int = 0
+    ) -> PointResult:
         assert watcher is not None
         before = watcher.counters()
         collector.clear()
@@ -356,6 +385,9 @@ def run_arena(
         )
         what = f"ODOMETRY from all {n} gateways at {rate:g} Hz"
         _wait_outputs(collector, n, settings.start_timeout, what, procs, lambda d: odometry_of(d) is not None)
+        loads = [
+            procs.spawn(f"hog.{k}", "load", [sys.executable, "-c", "while True: pass"]) for k in range(hogs)
+        ]
         time.sleep(settings.warmup)
         procs.check_alive()
         t0 = time.time_ns()
@@ -366,6 +398,8 @@ def run_arena(
             time.sleep(remaining)
         usage = procs.usage()
         t1 = time.time_ns()
+        for hog in loads:
+            procs.stop(hog)
         time.sleep(settings.drain)
         procs.check_alive()
         procs.stop(emulator)
@@ -388,6 +422,8 @@ def run_arena(
             counters=_delta(before, after),
             profile=profile,
             hops=hop_breakdown(found["first_vehicle"], hop_watcher.stamps) if hop_watcher else {},
+            window_s=(t1 - t0) / 1e9,
+            hogs=hogs,
         )
         keys_ = ("frames", "frame_gaps", "substituted", "unmatched_time", "clock_residual_us_p99")
         point.notes.append(
@@ -443,7 +479,10 @@ def run_arena(
                 procs.stop(c)
             decimators(realistic_vision)
             all_up()
-            measure(rates[0], f"{chain_name}-v{realistic_vision:g}", realistic_vision, {})
+            deployed = f"{chain_name}-v{realistic_vision:g}"
+            measure(rates[0], deployed, realistic_vision, {})
+            if overload > 0:
+                measure(rates[0], f"{deployed}-loaded", realistic_vision, {}, hogs=overload)
     finally:
         if hop_watcher is not None:
             hop_watcher.close()
@@ -467,212 +506,3 @@ def _env(repo: Path) -> dict[str, str]:
     )
     env.setdefault("PYTHONUNBUFFERED", "1")
     return env
-
-
-# -- the floors ----------------------------------------------------------------------------------------------
-
-
-def run_floor(
-    kind: str,
-    n: int,
-    rates: Sequence[float],
-    settings: RunSettings,
-    *,
-    inline: bool = False,
-    on_point: Callable[[PointResult], None] | None = None,
-) -> list[PointResult]:
-    """The floor chain over ``kind`` (``zenoh`` or ``udp``) for ``n`` vehicles at each rate."""
-    if kind not in ("zenoh", "udp"):
-        raise BenchError(f"floor transport must be zenoh or udp, not {kind!r}")
-    chain = f"floor-{kind}" + ("-inline" if inline else "")
-    sizes = payload_sizes(n)
-    workdir = settings.logs / f"{chain}-{n}"
-    socks, ports = _vehicle_sockets(n)
-    group, data_port = _group(), free_port()
-    socks["frames"] = stamped_socket(data_port, group=group)
-    procs = ProcessSet(workdir, env=_env(settings.repo))
-    collector = Collector(socks)
-    results: list[PointResult] = []
-    relay = ["bench.floor", "relay"]
-    try:
-        collector.start()
-        if kind == "zenoh":
-            rport = free_port(socket_kind_tcp())
-            endpoint = f"tcp/127.0.0.1:{rport}"
-            procs.spawn(
-                "router",
-                "router",
-                python_module("arena_common.cli", "router", "--listen", endpoint),
-                settings.repo,
-            )
-            wait_port(rport, 30, "the Zenoh router", procs)
-            z = ["--connect", endpoint] + (["--inline"] if inline else [])
-            a, b, c = (f"zenoh:{FLOOR_PREFIX}/v{{i}}/{s}" for s in "abc")
-            procs.spawn(
-                "ingest",
-                "ingest",
-                python_module(
-                    *relay,
-                    "--in",
-                    f"mcast:{group}:{data_port}",
-                    "--out",
-                    a,
-                    "--fanout",
-                    str(n),
-                    "--size",
-                    str(sizes["mocap"]),
-                    *z,
-                ),
-                settings.repo,
-            )
-            procs.spawn(
-                "transform",
-                "transform",
-                python_module(
-                    *relay, "--in", f"zenoh:{FLOOR_PREFIX}/*/a", "--out", b, "--size", str(sizes["pose"]), *z
-                ),
-                settings.repo,
-            )
-            for i in range(n):
-                procs.spawn(
-                    f"downsampler.d{i + 1}",
-                    "downsampler",
-                    python_module(
-                        *relay,
-                        "--in",
-                        f"zenoh:{FLOOR_PREFIX}/v{i}/b",
-                        "--out",
-                        c,
-                        "--size",
-                        str(sizes["pose"]),
-                        *z,
-                    ),
-                    settings.repo,
-                )
-            for i in range(n):
-                procs.spawn(
-                    f"gateway.d{i + 1}",
-                    "gateway",
-                    python_module(
-                        *relay,
-                        "--in",
-                        f"zenoh:{FLOOR_PREFIX}/v{i}/c",
-                        "--out",
-                        f"udp:{ports[i]}",
-                        "--size",
-                        str(sizes["odometry"]),
-                        *z,
-                    ),
-                    settings.repo,
-                )
-        else:
-            p_all = free_port()
-            p_b = [free_port() for _ in range(n)]
-            p_c = [free_port() for _ in range(n)]
-            procs.spawn(
-                "ingest",
-                "ingest",
-                python_module(
-                    *relay,
-                    "--in",
-                    f"mcast:{group}:{data_port}",
-                    "--out",
-                    f"udp:{p_all}",
-                    "--fanout",
-                    str(n),
-                    "--size",
-                    str(sizes["mocap"]),
-                ),
-                settings.repo,
-            )
-            procs.spawn(
-                "transform",
-                "transform",
-                python_module(
-                    *relay,
-                    "--in",
-                    f"udp:{p_all}",
-                    "--out",
-                    "udp:" + ",".join(map(str, p_b)),
-                    "--size",
-                    str(sizes["pose"]),
-                ),
-                settings.repo,
-            )
-            for i in range(n):
-                procs.spawn(
-                    f"downsampler.d{i + 1}",
-                    "downsampler",
-                    python_module(
-                        *relay,
-                        "--in",
-                        f"udp:{p_b[i]}",
-                        "--out",
-                        f"udp:{p_c[i]}",
-                        "--size",
-                        str(sizes["pose"]),
-                    ),
-                    settings.repo,
-                )
-            for i in range(n):
-                procs.spawn(
-                    f"gateway.d{i + 1}",
-                    "gateway",
-                    python_module(
-                        *relay,
-                        "--in",
-                        f"udp:{p_c[i]}",
-                        "--out",
-                        f"udp:{ports[i]}",
-                        "--size",
-                        str(sizes["odometry"]),
-                    ),
-                    settings.repo,
-                )
-        time.sleep(0.5)
-        for rate in rates:
-            collector.clear()
-            source = procs.spawn(
-                f"source.{int(rate)}",
-                "emulator",
-                python_module(
-                    "bench.floor",
-                    "source",
-                    "--group",
-                    group,
-                    "--port",
-                    str(data_port),
-                    "--rate",
-                    str(rate),
-                    "--size",
-                    str(sizes["natnet"]),
-                ),
-                settings.repo,
-            )
-            _wait_outputs(
-                collector,
-                n,
-                settings.start_timeout,
-                f"the {chain} chain to carry data for {n} vehicles",
-                procs,
-            )
-            time.sleep(settings.warmup)
-            t0 = time.time_ns()
-            procs.mark()
-            time.sleep(settings.duration)
-            usage = procs.usage()
-            t1 = time.time_ns()
-            time.sleep(settings.drain)
-            procs.check_alive()
-            procs.stop(source)
-            _wait_quiet(collector, list(range(n)))
-            records = collector.take()
-            found = analyze_floor(records["frames"], {i: records[i] for i in range(n)}, t0, t1)
-            point = _result(chain, n, rate, found, usage)
-            results.append(point)
-            if on_point is not None:
-                on_point(point)
-    finally:
-        procs.stop()
-        collector.close()
-    return results

@@ -5,9 +5,13 @@ Parts (each optional, see :class:`BenchOptions`):
 - ``pipeline`` — the real vision pipeline end to end on loopback (Motive emulator → ingest → transform →
   downsampler → gateway, one process each, one downsampler and gateway per vehicle) at every load point
   (vehicles × mocap rate): NatNet frame leaving the emulator → its ODOMETRY leaving the gateway, p50, p99,
-  p99.9, max, messages lost, and every process's CPU and memory (:mod:`bench.pipeline`);
-- ``floor`` — the same process topology moving bytes only, over Zenoh and over UDP, at the same loads;
-- ``peer`` — the gateway beside MAVProxy forwarding the same vision stream (:mod:`bench.peer`);
+  p99.9, max, messages lost, poses per second per vehicle, and every process's CPU and memory
+  (:mod:`bench.pipeline`); at every vehicle count one more point as deployed (vision 50 Hz), and at the
+  largest that point again with CPU hogs overloading the machine;
+- ``floor`` — the same process topology moving bytes only, over Zenoh and over UDP, at the same loads
+  (:mod:`bench.floor_run`);
+- ``peer`` — the gateway beside its Zenoh and UDP floors and MAVProxy forwarding the same vision stream,
+  each measured several times in alternating order (:mod:`bench.peer`);
 - ``micro`` — per-stage costs in one process (:mod:`bench.micro`).
 
 :func:`run` prints rich tables as parts finish, writes ``<out>/bench-<time>.json`` and ``<out>/latest.json``
@@ -37,8 +41,9 @@ from typing import Any
 
 from rich.console import Console
 
+from bench.floor_run import run_floor
 from bench.harness import BenchError, ProcessSet
-from bench.pipeline import CHAINS, PointResult, RunSettings, run_arena, run_floor
+from bench.pipeline import CHAINS, PointResult, RunSettings, run_arena
 from bench.report import (
     HOPS_HEADER,
     LATENCY_HEADER,
@@ -79,34 +84,37 @@ class BenchOptions:
     """What to measure and for how long."""
 
     parts: tuple[str, ...] = PARTS
-    vehicles: tuple[int, ...] = (1, 10, 20)
-    rates: tuple[float, ...] = (180.0, 360.0)
+    vehicles: tuple[int, ...] = (1, 20)
+    rates: tuple[float, ...] = (180.0,)
     floors: tuple[str, ...] = FLOORS
     duration: float = 3.0  # s measured per load point
     warmup: float = 1.0  # s of flow before each measurement
     idle: float = 1.0  # s of idle CPU measured per process set (0: skip)
     peer_rate: float = 200.0  # Hz of vision in the peer comparison
-    peer_duration: float = 3.0
+    peer_duration: float = 2.5  # s per run of each forwarder
+    peer_repeats: int = 3  # runs of each forwarder (alternating order): median and spread
     micro_scale: float = 1.0  # loop lengths of the micro-benchmarks (1 = full)
     out_dir: Path = Path("bench-results")
     docs: Path | None = Path("docs/performance.md")
     repo: Path = Path(".")
     profile: bool = False  # py-spy the services during each pipeline measurement
     hops: bool = False  # per-stage latency of the first vehicle (one more subscriber on its keys)
-    realistic_vision: float | None = 50.0  # Hz: one more point at the largest load with this vision rate
+    realistic_vision: float | None = 50.0  # Hz: one more point per vehicle count with this vision rate
+    overload: int = 2  # CPU hogs beside the deployed point at the largest load, measured again (0: skip)
     decimate: tuple[str, ...] = tuple(CHAINS)  # the pipeline configurations measured ([pipeline] decimate)
     quick: bool = False
 
     @classmethod
     def quick_options(cls, **changes: Any) -> BenchOptions:
-        """Short runs at the two smaller 180 Hz loads: a check that everything works, not figures."""
+        """Short runs at 1 and 10 vehicles, 180 Hz: a check that everything works, not figures."""
         base = cls(
             vehicles=(1, 10),
             rates=(180.0,),
             duration=2.0,
             warmup=1.0,
             idle=1.0,
-            peer_duration=2.0,
+            peer_duration=1.0,
+            peer_repeats=1,
             micro_scale=0.2,
             quick=True,
         )
@@ -128,6 +136,8 @@ class BenchOptions:
             raise BenchError("duration must be positive, warm-up and idle not negative")
         if not self.peer_rate > 0 or not self.peer_duration > 0 or not self.micro_scale > 0:
             raise BenchError("peer rate, peer duration and micro scale must be positive")
+        if self.peer_repeats < 1 or self.overload < 0:
+            raise BenchError("peer repeats must be at least 1, overload hogs not negative")
         bad = [d for d in self.decimate if d not in CHAINS]
         if bad or not self.decimate:
             raise BenchError(f"--decimate must be among {', '.join(CHAINS)}, got {list(self.decimate)}")
@@ -314,10 +324,12 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
     def on_point(p: PointResult) -> None:
         points.append(p)
         lat = p.latency
+        least = (p.vision_rate or {}).get("min")
         console.print(
-            f"  {p.chain:<12} {p.vehicles:>3} × {p.rate:>5g} Hz  p50 {_f(lat['p50'])} ms"
+            f"  {p.chain:<20} {p.vehicles:>3} × {p.rate:>5g} Hz  p50 {_f(lat['p50'])} ms"
             f"  p99 {_f(lat['p99'])} ms  max {_f(lat['max'])} ms  lost {p.lost}/{p.expected}"
-            f"  load {os.getloadavg()[0]:.2f}"
+            + (f"  ≥ {least:.1f} poses/s per vehicle" if least is not None else "")
+            + f"  load {os.getloadavg()[0]:.2f}"
         )
 
     busy = result["load_before"] and result["load_before"][0] > (os.cpu_count() or 1) * 0.75
@@ -337,15 +349,18 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
                     console.print(f"[bold]pipeline[/bold], {n} vehicle(s)")
                     with timed(f"pipeline {n}"):
                         for decimate in options.decimate:
-                            # The deployed point (vision 50 Hz) at the largest load, for the last
-                            # configuration measured only (transform by default): it keeps the run short.
+                            # The deployed point (vision 50 Hz), and at the largest load the overloaded
+                            # one, for the last configuration measured only (transform by default): it
+                            # keeps the run short.
                             last = decimate == options.decimate[-1]
-                            real = options.realistic_vision if n == max(options.vehicles) and last else None
+                            real = options.realistic_vision if last else None
+                            hogs = options.overload if n == max(options.vehicles) else 0
                             run_arena(
                                 n,
                                 options.rates,
                                 settings,
                                 realistic_vision=real,
+                                overload=hogs if real is not None else 0,
                                 on_point=on_point,
                                 decimate=decimate,
                             )
@@ -353,7 +368,14 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
                     for kind in options.floors:
                         with timed(f"floor-{kind} {n}"):
                             floor_settings = replace(settings, profile=None, idle=0.0, hops=False)
-                            run_floor(kind, n, options.rates, floor_settings, on_point=on_point)
+                            run_floor(
+                                kind,
+                                n,
+                                options.rates,
+                                floor_settings,
+                                vision_rate=options.realistic_vision,
+                                on_point=on_point,
+                            )
             result["points"] = [_clean(p.as_dict()) for p in points]
             console.print(_rich("End-to-end latency", LATENCY_HEADER, latency_rows(points)))
             console.print(_rich("CPU (% of one core) and memory", RESOURCE_HEADER, resource_rows(points)))
@@ -362,11 +384,16 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
         if "peer" in options.parts:
             from bench.peer import run_peers
 
-            console.print("[bold]peer[/bold]: gateway vs MAVProxy")
+            console.print("[bold]peer[/bold]: gateway, its floors and MAVProxy")
             peer_settings = replace(settings, duration=options.peer_duration, profile=None)
             with timed("peer"):
-                result["peer"] = _clean(run_peers(options.peer_rate, peer_settings))
-            console.print(_rich("Gateway vs MAVProxy", PEER_HEADER, peer_rows(result["peer"])))
+                result["peer"] = _clean(run_peers(options.peer_rate, peer_settings, options.peer_repeats))
+            runs = f"median (min–max) of {options.peer_repeats} runs" if options.peer_repeats > 1 else "1 run"
+            title = (
+                f"Gateway vs its floors and MAVProxy ({options.peer_rate:g} Hz, {runs} of "
+                f"{options.peer_duration:g} s each)"
+            )
+            console.print(_rich(title, PEER_HEADER, peer_rows(result["peer"])))
         if "micro" in options.parts:
             from bench.micro import run_micro
 
@@ -414,7 +441,21 @@ def _with_nan(result: dict[str, Any]) -> dict[str, Any]:
 
 
 _FIGURES = frozenset(
-    {"p50", "p99", "p999", "max", "mean", "cpu", "cpu_us_per_msg", "marginal_cpu_us_per_msg"}
+    {
+        "p50",
+        "p99",
+        "p999",
+        "max",
+        "mean",
+        "cpu",
+        "cpu_us_per_msg",
+        "marginal_cpu_us_per_msg",
+        "cpu_ratio",
+        "marginal_cpu_ratio",
+        "cpu_ratio_spread",
+        "floor_ratio",
+        "floor_mavproxy_ratio",
+    }
 )
 
 
@@ -432,4 +473,6 @@ def rerender(path: Path, docs: Path, console: Console | None = None) -> None:
     if points:
         console.print(_rich("End-to-end latency", LATENCY_HEADER, latency_rows(points)))
         console.print(_rich("CPU (% of one core) and memory", RESOURCE_HEADER, resource_rows(points)))
+    if result.get("peer"):
+        console.print(_rich("Gateway vs its floors and MAVProxy", PEER_HEADER, peer_rows(result["peer"])))
     console.print(_rich("Targets", ["target", "goal", "measured", ""], target_rows(evaluate_targets(result))))

@@ -6,18 +6,21 @@ starts the real processes, matches every ODOMETRY to its frame, counts, and writ
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
+import re
 import struct
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from arena_common.mavlink import px4
 from arena_common.mavlink.link import mavlink2
-from bench import report
+from bench import report, targets
 from bench import run as bench
-from bench.floor import HEADER
+from bench.floor import HEADER, kept
 from bench.harness import BenchError, latency_stats
 from bench.matching import (
     _f32,
@@ -28,6 +31,8 @@ from bench.matching import (
     odometry_of,
     payload_sizes,
 )
+from bench.peer import summarise
+from bench.pipeline import vision_rates
 from tests.conftest import REPO
 
 pytestmark = pytest.mark.system
@@ -130,8 +135,10 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
         duration=1.0,
         warmup=0.3,
         idle=0.3,
+        overload=1,
         peer_rate=50.0,
-        peer_duration=1.0,
+        peer_duration=0.5,
+        peer_repeats=2,
         micro_scale=0.01,
         out_dir=tmp_path / "results",
         docs=docs,
@@ -140,7 +147,16 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
     result = bench.run(options)
 
     points = {p["chain"]: p for p in result["points"]}
-    assert set(points) == {"arena", "arena-td", "arena-td-v50", "floor-zenoh", "floor-udp"}
+    assert set(points) == {
+        "arena",
+        "arena-td",
+        "arena-td-v50",
+        "arena-td-v50-loaded",
+        "floor-zenoh",
+        "floor-zenoh-v50",
+        "floor-udp",
+        "floor-udp-v50",
+    }
     for chain, decimator in (("arena", "downsampler"), ("arena-td", "transform")):
         arena = points[chain]
         # Every ODOMETRY found its frame (matched by position and time), and the frames were counted.
@@ -158,11 +174,21 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
     deployed = points["arena-td-v50"]
     assert deployed["designed_drops"] > deployed["expected"] > 0
     assert deployed["delivered"] > 0 and deployed["mismatched"] == 0
-    for chain in ("floor-zenoh", "floor-udp"):
+    assert deployed["vision_rate"]["min"] > 0
+    # Overloaded on purpose: what gets through is the measurement, not a condition of the harness working.
+    loaded = points["arena-td-v50-loaded"]
+    assert loaded["hogs"] == 1 and any(i["role"] == "load" for i in loaded["per_service"].values())
+    assert loaded["mismatched"] == 0 and set(loaded["vision_rate"]) == {"min", "median", "max"}
+    for chain in ("floor-zenoh", "floor-udp", "floor-zenoh-v50", "floor-udp-v50"):
         assert points[chain]["delivered"] > 0 and points[chain]["latency"]["n"] == points[chain]["delivered"]
+    # The floors' decimating relay passes the same share of the frames as the arena's decimator.
+    assert points["floor-zenoh-v50"]["expected"] < points["floor-zenoh"]["expected"] / 2
 
     peer = result["peer"]
-    assert peer["gateway"]["forwarded"] > 0
+    assert peer["order"][:3] == ["gateway", "floor-zenoh", "floor-udp"]
+    for name in ("gateway", "floor-zenoh", "floor-udp"):
+        assert peer[name]["forwarded"] > 0 and peer[name]["repeats"] == 2
+        assert len(peer[name]["runs"]) == 2 and len(peer[name]["load"]) == 2
     assert "forwarded" in peer["mavproxy"] or "unavailable" in peer["mavproxy"]
     assert result["micro"]["natnet_decode_us"]["10 bodies"] > 0
     assert result["micro"]["recorder"]["json (messages/s)"] > 0
@@ -170,10 +196,173 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
     stored = json.loads((tmp_path / "results" / "latest.json").read_text())
     assert stored["points"] == json.loads(json.dumps(result["points"]))
     names = {t["name"] for t in stored["targets"]}
-    assert names >= {"NatNet decode, 10-body frame", "20 × 360 Hz without loss"}
+    assert names >= {
+        "NatNet decode, 10-body frame",
+        "gateway CPU per forwarded vision message",
+        "pipeline CPU per vehicle, 1 × 180 Hz mocap, 50 Hz vision",
+        "make bench duration",
+    }
     text = docs.read_text()
     assert "Hand-written text stays." in text
     assert text.count(report.DOCS_BEGIN) == 1 and "| 1 × 180 Hz | arena |" in text
 
     report.update_docs(docs, bench.load_result(tmp_path / "results" / "latest.json"))
     assert docs.read_text().count(report.DOCS_BEGIN) == 1  # replaced, not appended
+
+
+def test_floor_decimation_keeps_the_share_evenly() -> None:
+    share = 50.0 / 180.0
+    passed = [fn for fn in range(1, 1801) if kept(fn, share)]
+    assert len(passed) == 500  # 50 of every 180 frames
+    gaps = {b - a for a, b in itertools.pairwise(passed)}
+    assert gaps <= {3, 4}
+    assert all(kept(fn, 1.0) for fn in range(1, 10))
+    frames = [(1_000 * fn, struct.pack("<Q", fn) + bytes(20)) for fn in range(1, 37)]
+    outs = {0: [(1_000 * fn + 300, HEADER.pack(fn, 0)) for fn in range(1, 37) if kept(fn, share)]}
+    found = analyze_floor(frames, outs, 1_000, 36_000, keep=share)
+    assert found["expected"] == 10 and found["lost"] == 0
+    assert found["per_vehicle"][0] == {"expected": 10, "delivered": 10}
+
+
+def test_vision_rates_take_the_least_served_vehicle() -> None:
+    rates = vision_rates({0: {"delivered": 150}, 1: {"delivered": 120}}, 3, 3.0)
+    assert rates == {"min": 0.0, "median": 40.0, "max": 50.0}  # vehicle 2 received nothing
+    assert vision_rates({}, 2, 0.0) == {}
+
+
+def _run(cpu: float, p50: float, load: float = 0.5) -> dict[str, object]:
+    lat = {"n": 100, "p50": p50, "p99": 2 * p50, "p999": 3 * p50, "max": 4 * p50, "mean": p50}
+    return {
+        "sent": 100,
+        "forwarded": 100,
+        "lost": 0,
+        "latency": lat,
+        "cpu_percent": cpu / 50,
+        "idle_cpu_percent": 0.1,
+        "cpu_us_per_msg": cpu,
+        "marginal_cpu_us_per_msg": cpu - 10,
+        "rss": 50 << 20,
+        "load": load,
+    }
+
+
+def test_peer_summary_is_the_median_with_its_spread() -> None:
+    s = summarise([_run(300, 0.4, 0.2), _run(250, 0.5, 0.3), _run(400, 0.3, 0.4)])
+    assert s["cpu_us_per_msg"] == 300 and s["spread"]["cpu_us_per_msg"] == [250, 400]
+    assert s["latency"]["p50"] == 0.4 and s["spread"]["p50"] == [0.3, 0.5]
+    assert s["latency"]["max"] == pytest.approx(2.0)
+    assert (s["sent"], s["forwarded"], s["repeats"], s["load"]) == (300, 300, 3, [0.2, 0.3, 0.4])
+    row = report.peer_rows({"gateway": s, "mavproxy": summarise([_run(600, 0.3)])})[0]
+    assert row[0] == "gateway" and row[4] == "300 (250–400)" and row[6] == "×0.50"
+    assert row[-1] == "0.2, 0.3, 0.4"
+
+
+def _point(chain: str, n: int, cpu: dict[str, float], p50: float = 1.0, **extra: object) -> dict[str, object]:
+    services = {
+        f"{role}.{k}": {
+            "role": role,
+            "pid": 1,
+            "cpu": c / (n if role in ("gateway", "downsampler") else 1),
+            "rss": 50 << 20,
+        }
+        for role, c in cpu.items()
+        for k in range(n if role in ("gateway", "downsampler") else 1)
+    }
+    lat = {"n": 100, "p50": p50, "p99": 3 * p50, "p999": 4 * p50, "max": 5 * p50, "mean": p50}
+    base: dict[str, object] = {
+        "chain": chain,
+        "vehicles": n,
+        "rate": 180.0,
+        "latency": lat,
+        "expected": 100,
+        "delivered": 100,
+        "lost": 0,
+        "per_service": services,
+    }
+    return {**base, **extra}
+
+
+def _result(gateway_cpu: float, points: list[dict[str, object]], **extra: object) -> dict[str, Any]:
+    peer = {
+        "rate": 200.0,
+        "duration": 2.5,
+        "repeats": 3,
+        "gateway": summarise([_run(gateway_cpu, 0.4)] * 3),
+        "floor-zenoh": summarise([_run(170, 0.3)] * 3),
+        "floor-udp": summarise([_run(60, 0.1)] * 3),
+        "mavproxy": summarise([_run(360, 0.3)] * 3),
+        "cpu_ratio": gateway_cpu / 360,
+        "cpu_ratio_spread": [gateway_cpu / 380, gateway_cpu / 340],
+    }
+    base = {
+        "points": points,
+        "peer": peer,
+        "elapsed_s": 250.0,
+        "options": {"quick": False, "parts": list(bench.PARTS)},
+    }
+    return {**base, **extra}
+
+
+def _targets(result: dict[str, object]) -> dict[str, targets.Target]:
+    """The targets by the start of their name (up to a comma or parenthesis)."""
+    return {re.split(r"[,(]", t.name)[0].strip(): t for t in report.evaluate_targets(result)}
+
+
+def test_targets_from_a_synthetic_run() -> None:
+    arena = {"router": 0.5, "ingest": 5.0, "transform": 8.0, "gateway": 4.0}
+    floor = {"router": 0.5, "ingest": 3.0, "transform": 4.0, "downsampler": 2.0, "gateway": 1.5}
+    deployed = {"min": 49.0, "median": 50.0, "max": 50.3}
+    points = [
+        _point("arena-td", 1, arena, p50=1.0),
+        _point("arena", 1, {**arena, "downsampler": 4.0}, p50=1.3),
+        _point("floor-zenoh", 1, floor, p50=0.9),
+        _point("arena-td-v50", 1, arena, vision_rate=deployed),
+        _point("floor-zenoh-v50", 1, floor),
+        _point("arena-td-v50", 20, arena, p50=5.0, vision_rate=deployed),
+        _point(
+            "arena-td-v50-loaded",
+            20,
+            {**arena, "load": 120.0},
+            p50=6.0,
+            hogs=2,
+            vision_rate={**deployed, "min": 30.0},
+        ),
+    ]
+    t = _targets(_result(250.0, points))
+
+    peer = t["gateway CPU per forwarded vision message"]
+    assert peer.met is False and peer.measured.startswith("×0.69: ")
+    assert (
+        "gateway 250 µs, its Zenoh floor 170 µs, MAVProxy 360 µs: the floor alone is ×0.47" in peer.measured
+    )
+    assert t["gateway CPU per vision message vs its Zenoh floor"].met is True  # 250 / 170 ≤ 1.5
+    cpu = t["pipeline CPU per vehicle"]  # 17.5 % against the floor's 11.0 % at vision 50 Hz
+    assert cpu.met is False and cpu.measured.startswith("×1.59: 17.5 % vs floor 11.0 %")
+    assert "transform 8.0/4.0" in cpu.measured and "downsampler —/2.0" in cpu.measured
+    lat = t["1 vehicle × 180 Hz end to end p50"]
+    assert lat.met is True and lat.measured.startswith("×1.11")  # arena-td, the faster configuration
+    deployed_t = t["20 vehicles × 180 Hz as deployed"]
+    assert deployed_t.met is True and "least 49.0 poses/s" in deployed_t.measured
+    assert "p99 15.0 ms, lost 0/100" in deployed_t.measured
+    loaded = t["vision first under overload: 20 vehicles × 180 Hz as deployed"]
+    assert loaded.met is False and "least 30.0 poses/s" in loaded.measured
+    assert "2 hogs took 120 %" in loaded.measured
+    assert t["make bench duration"].met is True and t["make bench duration"].measured == "250 s"
+    assert t["idle per-vehicle process RSS"].met is None  # no idle figures in this result
+
+    t = _targets(_result(30.0, points, elapsed_s=320.0, options={"quick": True, "parts": list(bench.PARTS)}))
+    assert t["gateway CPU per forwarded vision message"].met is True
+    assert t["make bench duration"].met is None and "not a full run" in t["make bench duration"].measured
+    slow = _targets(_result(30.0, points, elapsed_s=320.0))
+    assert slow["make bench duration"].met is False
+
+    nothing = report.evaluate_targets(
+        {"points": [], "peer": {}, "elapsed_s": 10.0, "options": {"parts": ["micro"]}}
+    )
+    assert all(x.met is None for x in nothing)
+    gone = _result(250.0, [])
+    gone["peer"]["mavproxy"] = {
+        "unavailable": "mavproxy exited with status 1:\n│ Traceback\n│ ImportError: x │"
+    }
+    why = _targets(gone)["gateway CPU per forwarded vision message"]
+    assert why.met is None and why.measured == "MAVProxy: mavproxy exited with status 1: … ImportError: x"
