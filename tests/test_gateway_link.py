@@ -493,3 +493,11 @@ def test_reboots_are_told_from_the_boot_clock() -> None:
     at(1500, 2.04)
     at(1460, 2.05)  # 40 ms back after the first second: sampling spread, not a reboot
     assert state.reboots == 3
+    at(1600, 3.0)  # a second of silence, the clock on: not a reboot
+    assert state.reboots == 3
+    state.expect_reboot(10.0)  # we asked for one, and it was accepted
+    at(1700, 3.01)
+    at(1750, 3.6)  # silent, and its new clock already past the old one: the reboot we asked for
+    assert state.reboots == 4
+    at(2900, 4.5)  # silent again, but no reboot is expected any more
+    assert state.reboots == 4

@@ -373,8 +373,10 @@ class CommandExecutor:
             return _refused("armed: disarm first")
         s = self.state
         before = s.reboots
+        s.expect_reboot(deadline)  # before asking: it may fall silent before this thread hears the answer
         result = self.commander.command(px4.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, (1,), deadline)
         if result != "ACCEPTED":
+            s.expect_reboot(-math.inf)
             return _result(result, "the autopilot did not accept PREFLIGHT_REBOOT_SHUTDOWN: power-cycle it")
         if not s.wait(lambda: s.reboots > before and s.link, deadline):  # back: its boot clock restarted
             return _result("TIMEOUT", "reboot accepted, but the autopilot is not back yet")

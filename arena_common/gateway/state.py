@@ -51,6 +51,7 @@ class VehicleState:
         self.battery_flag = ""
         self.boot_ms = -1
         self._boot_seen = -math.inf  # when the last time_boot_ms arrived
+        self._reboot_expected_until = -math.inf  # a reboot we asked for and the autopilot accepted
         self.reboots = 0
         self.est_flags: int | None = None  # ESTIMATOR_STATUS.flags, None before the first
         self.est_time = -math.inf
@@ -119,16 +120,26 @@ class VehicleState:
     def on_estimator_status(self, msg: Any, now: float) -> None:
         self.est_flags, self.est_time = int(msg.flags), now
 
+    def expect_reboot(self, until: float) -> None:
+        """The autopilot accepted a reboot: its next silence (until the monotonic ``until``) is that reboot."""
+        self._reboot_expected_until = until
+
     def _boot_time(self, boot_ms: int, now: float) -> None:
         # Message types are sampled at different times, so a clock a few ms back is not a reboot; a clock
         # back by more than a second is, and so is one back at all after the autopilot fell silent, or one
         # back by more than the sampling spread to under a second (a reboot soon after the last one: its
-        # clock has not gone far; a busy host may read the silence's two ends back to back).
+        # clock has not gone far; a busy host may read the silence's two ends back to back).  After a
+        # reboot we asked for, a silence alone is enough: an autopilot that rebooted seconds after its last
+        # boot may stream again only once its new clock has passed where the old one stopped.
         back = self.boot_ms - boot_ms
         silent = now - self._boot_seen > 0.3
         self._boot_seen = now
-        restarted = back > 1000 or (back > 0 and silent) or (back > 50 and boot_ms < 1000)
+        expected = now <= self._reboot_expected_until
+        restarted = (
+            back > 1000 or (back > 0 and silent) or (back > 50 and boot_ms < 1000) or (expected and silent)
+        )
         if self.boot_ms >= 0 and restarted:
+            self._reboot_expected_until = -math.inf
             self.reboots += 1
             self.events.emit("info", "the autopilot rebooted (its clock went back)", 5, boot_ms=boot_ms)
             for cb in self.on_reboot:
