@@ -324,9 +324,8 @@ class Publisher(Generic[P]):
     def matching(self) -> bool:
         """Whether any subscriber (here or on any computer of the bus) takes this key now."""
         try:
-            status: Any = (
-                self._pub.matching_status
-            )  # typed as a bool by the stubs; a MatchingStatus at run time
+            # Typed as a bool by zenoh's stubs; a MatchingStatus at run time.
+            status: Any = self._pub.matching_status
             return bool(status.matching)
         except Exception:  # undeclared with its session
             return False

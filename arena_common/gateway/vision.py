@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import collections
 import math
-import struct
 import time
 from collections.abc import Callable
 
@@ -103,6 +102,12 @@ class VisionSender:
         # A new offset estimate may move t_local back by its (µs) correction: keep time_usec increasing.
         usec = max(t_local // 1000, self.last_usec + 1)
         mav = self.link.mav
+        deadline_ns = t_local + self.max_age_ns
+
+        def fresh() -> bool:
+            # The thread may have been stopped (a frozen process, a long pause) since the age check.
+            return clock_given or wire.now_ns() <= deadline_ns
+
         if self.message == "odometry":
             args = px4.odometry_args(
                 usec,
@@ -112,29 +117,18 @@ class VisionSender:
                 reset_counter=self.reset_counter,
                 angular_velocity_frd=pose.w if with_velocity else None,
             )
-            try:
-                payload = fastframe.odometry_payload(args)
-            except (struct.error, OverflowError) as exc:  # a value beyond its field's type
-                self.link.pack_errors += 1
-                self.link.last_pack_error = f"ODOMETRY: {exc}"
-                return "cannot be packed"
+            sent = self.link.send_packed(
+                fastframe.ODOMETRY,
+                lambda: fastframe.odometry_payload(args),
+                lambda: mav.odometry_encode(**args),
+                fresh,
+            )
         else:
             roll, pitch, yaw = quat_to_euler(pose.q)
             cov = [math.nan] + [0.0] * 20
             msg = mav.vision_position_estimate_encode(
                 usec, p[0], p[1], p[2], roll, pitch, yaw, cov, self.reset_counter
             )
-        deadline_ns = t_local + self.max_age_ns
-
-        def fresh() -> bool:
-            # The thread may have been stopped (a frozen process, a long pause) since the age check.
-            return clock_given or wire.now_ns() <= deadline_ns
-
-        if self.message == "odometry":
-            sent = self.link.send_packed(
-                fastframe.ODOMETRY, payload, lambda: mav.odometry_encode(**args), fresh
-            )
-        else:
             sent = self.link.send(msg, fresh=fresh)
         if not sent:
             if not fresh():

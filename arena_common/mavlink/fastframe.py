@@ -9,7 +9,6 @@ unsigned links; a signed link goes through pymavlink.
 
 from __future__ import annotations
 
-import math
 import struct
 from typing import Any
 
@@ -40,7 +39,7 @@ class FrameType:
     """One MAVLink 2 message type: its id, CRC extra and payload layout (wire order)."""
 
     def __init__(self, cls: Any) -> None:
-        self.cls = cls
+        self.name = str(cls.msgname)
         self.msgid = int(cls.id)
         self.crc_extra = int(cls.crc_extra)
         self.payload = struct.Struct(cls.unpacker.format)
@@ -56,11 +55,10 @@ class FrameType:
 
 
 ODOMETRY = FrameType(mavlink2.MAVLink_odometry_message)
-_NAN21 = (math.nan,) * 21
 
 
 def odometry_payload(args: dict[str, Any]) -> bytes:
-    """ODOMETRY's payload from :func:`~arena_common.mavlink.px4.odometry_args` (covariances unknown: NaN).
+    """ODOMETRY's payload from :func:`~arena_common.mavlink.px4.odometry_args`.
 
     Raises ``struct.error`` for a value beyond its field's type, as pymavlink does.
     """
@@ -80,8 +78,8 @@ def odometry_payload(args: dict[str, Any]) -> bytes:
         args["rollspeed"],
         args["pitchspeed"],
         args["yawspeed"],
-        *_NAN21,
-        *_NAN21,
+        *args["pose_covariance"],
+        *args["velocity_covariance"],
         args["frame_id"],
         args["child_frame_id"],
         args["reset_counter"],

@@ -360,8 +360,7 @@ class MavlinkLink:
                 buf = msg.pack(self.mav)
             except Exception as exc:  # a value beyond its field's type: that message only, never the loop
                 self.mav.seq = seq
-                self.pack_errors += 1
-                self.last_pack_error = f"{type(msg).__name__}: {exc}"
+                self._pack_failed(type(msg).__name__, exc)
                 return False
             if fresh is not None and not fresh():
                 return False
@@ -371,26 +370,35 @@ class MavlinkLink:
     def send_packed(
         self,
         ftype: FrameType,
-        payload: bytes,
+        payload: Callable[[], bytes],
         message: Callable[[], Any],
         fresh: Callable[[], bool] | None = None,
     ) -> bool:
-        """As :meth:`send`, for a payload already packed: framed here without a pymavlink object.
+        """As :meth:`send`, for a payload packed by ``payload()`` and framed here without a pymavlink object.
 
         A signed link needs pymavlink's signature: there ``message()`` builds the object instead.
         """
         if self.signing is not None:
             return self.send(message(), fresh)
+        try:
+            body = payload()
+        except (struct.error, OverflowError) as exc:  # a value beyond its field's type
+            self._pack_failed(ftype.name, exc)
+            return False
         with self._lock:
             t = self._transport
             if t is None or not t.can_send():
                 return False
             mav = self.mav
-            buf = ftype.frame(payload, mav.seq, mav.srcSystem, mav.srcComponent)
+            buf = ftype.frame(body, mav.seq, mav.srcSystem, mav.srcComponent)
             if fresh is not None and not fresh():
                 return False
             mav.seq = (mav.seq + 1) % 256
             return self._write(t, buf)
+
+    def _pack_failed(self, what: str, exc: BaseException) -> None:
+        self.pack_errors += 1
+        self.last_pack_error = f"{what}: {exc}"
 
     def send_raw(self, data: bytes) -> bool:
         """Write already-encoded frames as they are (forwarding)."""
