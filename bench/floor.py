@@ -2,7 +2,8 @@
 
 ``python -m bench.floor source …`` plays Motive (a datagram of the NatNet frame's size to a
 multicast group at a fixed rate on a drift-free clock); ``… relay …`` plays every other process: it takes
-each message from its input and sends it on, fanned out per vehicle for the ingest's place.  Chained like
+each message from its input and sends it on, fanned out per vehicle for the transform's place (the ingest
+sends one message per frame, as the arena does).  Chained like
 the arena (source → ingest → transform → N downsamplers → N gateways → the harness), over Zenoh with the
 arena's own session settings and stream QoS, or over plain UDP, it measures what the transport alone costs
 on this machine, so the arena's figures can be read as a ratio to it.
@@ -150,7 +151,7 @@ def run_relay(
 ) -> int:
     """Forward every message from ``source`` to ``target`` until ``stop``; messages forwarded.
 
-    ``fanout`` > 0: each input becomes ``fanout`` messages, one per vehicle index (the ingest's place);
+    ``fanout`` > 0: each input becomes ``fanout`` messages, one per vehicle index (the transform's place);
     otherwise the vehicle index is read from the message.  ``keep`` < 1 passes only that share of the
     frames, evenly (:func:`kept`): a decimator's place.
     """
@@ -161,6 +162,8 @@ def run_relay(
         nonlocal sent
         if fanout:
             fn = _FN.unpack_from(data)[0]
+            if keep < 1.0 and not kept(fn, keep):
+                return
             for i in range(fanout):
                 out.send(i, HEADER.pack(fn, i))
             sent += fanout

@@ -81,8 +81,9 @@ def run_floor(
             )
             wait_port(rport, 30, "the Zenoh router", procs)
             z = ["--connect", endpoint] + (["--inline"] if inline else [])
-            a, b, c = (f"zenoh:{FLOOR_PREFIX}/v{{i}}/{s}" for s in "abc")
-            into_transform, out_transform = f"zenoh:{FLOOR_PREFIX}/*/a", b
+            b, c = (f"zenoh:{FLOOR_PREFIX}/v{{i}}/{s}" for s in "bc")
+            a = into_transform = f"zenoh:{FLOOR_PREFIX}/frames"
+            out_transform = b
             into_ds = [f"zenoh:{FLOOR_PREFIX}/v{i}/b" for i in range(n)]
             into_gw = [f"zenoh:{FLOOR_PREFIX}/v{i}/c" for i in range(n)]
             out_ds = [c] * n
@@ -95,10 +96,11 @@ def run_floor(
             into_ds = [f"udp:{p}" for p in p_b]
             out_ds = [f"udp:{p}" for p in p_c]
             into_gw = out_ds
-        relay("ingest", "ingest", f"mcast:{group}:{data_port}", a, str(sizes["mocap"]), "--fanout", str(n))
+        relay("ingest", "ingest", f"mcast:{group}:{data_port}", a, str(sizes["frames"]))
 
         def transform(*extra: str) -> None:
-            relay("transform", "transform", into_transform, out_transform, str(sizes["pose"]), *extra)
+            argv = (into_transform, out_transform, str(sizes["pose"]), "--fanout", str(n), *extra)
+            relay("transform", "transform", *argv)
 
         transform()
         for i in range(n):

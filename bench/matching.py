@@ -86,7 +86,24 @@ def payload_sizes(n_bodies: int) -> dict[str, int]:
         vok=True,
         tp=now,
     ).encode()
-    return {"natnet": len(frame), "mocap": len(mocap), "pose": len(pose), "odometry": _odometry_size()}
+    frames = wire.MocapFrame(
+        t=now,
+        fn=123456,
+        b=tuple(
+            wire.MocapBody(f"d{i + 1}", i + 1, body.pos, (1.0, 0.0, 0.0, 0.0), True) for i in range(n_bodies)
+        ),
+        lat=5_380_000,
+        mts=1234.5,
+        tsrc="echo",
+        tp=now,
+    ).encode()
+    return {
+        "natnet": len(frame),
+        "mocap": len(mocap),
+        "frames": len(frames),
+        "pose": len(pose),
+        "odometry": _odometry_size(),
+    }
 
 
 def _odometry_size() -> int:

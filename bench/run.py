@@ -236,10 +236,11 @@ def make_profiler(out_dir: Path) -> Callable[[ProcessSet, float], dict[str, Any]
                 "--duration",
                 str(max(1, int(duration))),
                 "--rate",
-                "250",
+                "500",
                 "--format",
                 "raw",
                 "--nonblocking",
+                "--gil",  # only threads holding the GIL: where the Python CPU goes, not where it waits
                 "--output",
                 str(path),
             ]
@@ -339,7 +340,7 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
             "prefer a quiet moment[/yellow]"
         )
     console.print(
-        f"[bold]arena bench[/bold]: {result['machine']['cpu']}, {result['machine']['cores']} cores, "
+        f"[bold]make bench[/bold]: {result['machine']['cpu']}, {result['machine']['cores']} cores, "
         f"load {', '.join(f'{x:.2f}' for x in result['load_before'])}; logs in {logs}"
     )
     try:

@@ -1,10 +1,13 @@
-"""Frame transform: ``arena/*/mocap`` (Motive's frame) → ``arena/<drone>/pose`` (arena NED/FRD), full rate.
+"""Frame transform: ``arena/sys/frames`` (Motive's frame) → ``arena/<drone>/pose`` (arena NED/FRD), full rate.
 
-Every :class:`~arena_common.core.wire.MocapPose` is converted with one precomputed
+It reads one :class:`~arena_common.core.wire.MocapFrame` per mocap frame (every claimed body at once: one
+wake-up per frame, not per body). Every body is converted with one precomputed
 :class:`~arena_common.geometry.frames.FrameTransform` (``mocap.up_axis`` then the ``[calibration]`` table) and
-republished as a :class:`~arena_common.core.wire.Pose` on the same vehicle's ``pose`` key, with linear and
+republished as a :class:`~arena_common.core.wire.Pose` on its vehicle's ``pose`` key, with linear and
 angular velocity from a :class:`~arena_common.geometry.filters.VelocityEstimator` per vehicle. The measurement time
-``t`` and Motive's frame number ``fn`` are carried through; ``tp`` is the publish time.
+``t`` and Motive's frame number ``fn`` are carried through; ``tp`` is the publish time. With the transform
+decimating (below), a vehicle's full-rate ``pose`` is published only while someone subscribes to it (asked
+of Zenoh every :data:`WATCH_PERIOD`); otherwise the downsampler subscribes to every one.
 
 Bodies Motive lost (``ok`` false) are passed on with ``ok=False`` so that consumers see the loss; they
 restart the vehicle's velocity estimate and are never made valid here. Undecodable samples are counted
@@ -14,7 +17,7 @@ With ``[pipeline] decimate = "transform"`` it also runs each configured vehicle'
 :class:`~arena_common.pipeline.vision.VisionFilter` (what the downsampler process does otherwise) and publishes
 ``arena/<drone>/vision`` at the vehicle's ``vision_rate``: one process and one hop less per vehicle.
 
-Samples arrive one per key, so the per-pose path uses plain float math (several times cheaper than numpy
+The per-pose path uses plain float math (several times cheaper than numpy
 for a single pose); the transform itself is a small share of the per-pose cost, which is dominated by
 msgpack decoding and payload validation.
 """
@@ -47,10 +50,11 @@ from arena_common.runtime.options import (
 from arena_common.runtime.service import Service, running, setup_logging
 
 SERVICE = "transform"
-SUBSCRIPTION = "arena/*/mocap"
-# A mocap frame carries one sample per body: the FIFO absorbs a few frames' worth of bursts for many
-# vehicles without ever dropping the sample a downstream decimator needs.
-QUEUE_CAPACITY = 1024
+SUBSCRIPTION = keys.FRAMES
+# One sample per mocap frame: the FIFO absorbs over a second of frames (at 180 Hz) of a stall without ever
+# dropping the frame a decimator needs.
+QUEUE_CAPACITY = 256
+WATCH_PERIOD = 0.5  # s between asking Zenoh whether anyone subscribes to a vehicle's full-rate pose
 MAX_VEHICLES = 256  # bounds the per-vehicle state a misbehaving publisher could make us create
 VELOCITY_CUTOFF_HZ = 15.0
 VELOCITY_MAX_GAP_S = 0.1
@@ -165,11 +169,13 @@ def main(
             svc.log.info("decimating %d vehicles into vision in-process", len(decimators.filters))
         sub = svc.bus.subscribe(SUBSCRIPTION, capacity=QUEUE_CAPACITY, ring=False)
         publishers: dict[str, Publisher[wire.Pose]] = {}
+        watched: dict[str, bool] = {}
+        next_watch = 0.0
         shed_ns = int(cfg.pipeline.shed_after * 1e9)
         dropped = 0
         while not svc.stopped:
             item = sub.get(0.2)
-            if sub.channel.dropped != dropped:  # samples the queue could not hold (we fell behind)
+            if sub.channel.dropped != dropped:  # frames the queue could not hold (we fell behind)
                 svc.stats.count("dropped", sub.channel.dropped - dropped)
                 dropped = sub.channel.dropped
             if item is None:
@@ -178,32 +184,43 @@ def main(
             if item.error is not None:
                 svc.reject("bad_payload", str(item.error))
                 continue
-            m = item.payload
-            if not isinstance(m, wire.MocapPose):
-                svc.reject("wrong_type", f"{item.key} carried {type(m).__name__}, not MocapPose")
+            frame = item.payload
+            if not isinstance(frame, wire.MocapFrame):
+                svc.reject("wrong_type", f"{item.key} carried {type(frame).__name__}, not MocapFrame")
                 continue
-            drone = item.key.split("/")[1]  # the key already passed keys.parse when it was decoded
-            pub = publishers.get(drone)
-            if pub is None:
-                if len(publishers) >= MAX_VEHICLES:
-                    svc.reject("too_many_vehicles", f"{drone}: already serving {MAX_VEHICLES} vehicles")
+            if decimators is not None and time.monotonic() >= next_watch:
+                next_watch = time.monotonic() + WATCH_PERIOD
+                watched = {drone: pub.matching for drone, pub in publishers.items()}
+            behind = decimators is not None and shed_ns and time.time_ns() - item.t_recv > shed_ns
+            for body in frame.b:
+                drone = body.v  # a valid vehicle name: the frame passed its checks when it was decoded
+                pub = publishers.get(drone)
+                if pub is None:
+                    if len(publishers) >= MAX_VEHICLES:
+                        svc.reject("too_many_vehicles", f"{drone}: already serving {MAX_VEHICLES} vehicles")
+                        continue
+                    pub = publishers[drone] = svc.bus.stream_publisher(
+                        keys.pose(drone), wire.Pose, Lane.CONTROL
+                    )
+                    watched[drone] = True  # until Zenoh is next asked
+                    svc.log.info("serving %s", drone)
+                try:
+                    pose = converter.convert(drone, frame.pose(body))
+                except FrameError as exc:
+                    svc.reject("bad_pose", f"{item.key}, body {body.id} of {drone}: {exc}")
                     continue
-                pub = publishers[drone] = svc.bus.stream_publisher(keys.pose(drone), wire.Pose, Lane.CONTROL)
-                svc.log.info("serving %s", drone)
-            try:
-                pose = converter.convert(drone, m)
-            except FrameError as exc:
-                svc.reject("bad_pose", f"{item.key}: {exc}")
-                continue
-            if decimators is not None:
-                decimators.offer(drone, pose)  # vision first: it is the latency-critical output
-                if shed_ns and time.time_ns() - item.t_recv > shed_ns:
-                    svc.stats.count("shed")  # behind: the full-rate pose goes, the vision did not
-                    continue
-            pub.put(pose)
-            svc.stats.count("out")
-            if not pose.ok:
-                svc.stats.count("invalid")
+                if decimators is not None:
+                    decimators.offer(drone, pose)  # vision first: it is the latency-critical output
+                    if behind:
+                        svc.stats.count("shed")  # behind: the full-rate pose goes, the vision did not
+                        continue
+                    if not watched.get(drone, True):
+                        svc.stats.count("unwatched")  # nobody subscribes to the full-rate pose
+                        continue
+                pub.put(pose)
+                svc.stats.count("out")
+                if not pose.ok:
+                    svc.stats.count("invalid")
             svc.stats.latency((time.time_ns() - item.t_recv) * 1e-9)
 
 
@@ -216,7 +233,7 @@ def cli(
     host: HostOpt = None,
     log_level: LogOpt = "INFO",
 ) -> None:
-    """Motive poses (arena/*/mocap) → arena-frame poses with velocities (arena/<drone>/pose)."""
+    """Motive frames (arena/sys/frames) → arena-frame poses with velocities (arena/<drone>/pose)."""
     setup_logging(log_level)
     cfg = load_config(config)
     main(cfg, bus_options(mode, connect, listen, zconfig), host=host)

@@ -1,9 +1,12 @@
-"""Mocap ingest: rigid bodies from Motive (or another source) → ``arena/<drone>/mocap``, one key per vehicle.
+"""Mocap ingest: rigid bodies from Motive (or another source) → ``arena/sys/frames`` and ``arena/<drone>/mocap``.
 
 Reads frames from the source ``mocap.source`` names (NatNet by default, see
 :mod:`arena_common.mocap.sources`), maps each rigid body to its vehicle by the name or id the config gives
-(``vehicles.<name>.rigid_body``) and publishes a :class:`~arena_common.core.wire.MocapPose` per body and frame,
-still in Motive's frame, with its measurement time. Untracked bodies are published with ``ok=False``;
+(``vehicles.<name>.rigid_body``) and publishes, still in Motive's frame and with its measurement time, one
+:class:`~arena_common.core.wire.MocapFrame` per frame with every claimed body on ``arena/sys/frames`` (what
+the frame transform reads: one message per frame, not one per body) and, while someone subscribes to it, a
+:class:`~arena_common.core.wire.MocapPose` per body on its vehicle's ``mocap`` key (whether anyone does is
+asked of Zenoh every :data:`WATCH_PERIOD`). Untracked bodies are published with ``ok=False``;
 bodies no vehicle claims are counted and, with ``mocap.publish_unknown``, published on
 ``arena/sys/bodies/<body>``. Every problem the source meets is counted in the service's stats under its
 reason; the service reconnects by itself and never stops on bad input.
@@ -39,6 +42,7 @@ from arena_common.runtime.options import (
 from arena_common.runtime.service import Service, running, setup_logging
 
 MAX_UNKNOWN_KEYS = 256  # publishers created for unclaimed bodies, at most
+WATCH_PERIOD = 0.5  # s between asking Zenoh whether anyone subscribes to a vehicle's mocap key
 _BAD_KEY_CHARS = re.compile(r"[^A-Za-z0-9_.\-]")
 
 
@@ -66,6 +70,21 @@ def body_key_name(name: str, body_id: int) -> str:
         return f"id{body_id}" if body_id >= 0 else f"id_{-body_id}"
 
 
+def body_numbers(body: RigidBody, ok: bool) -> tuple[wire.Vec3, wire.Quat, float]:
+    """Position, quaternion (Motive's x, y, z, w becomes the wire's w, x, y, z) and marker error of
+    ``body`` as the wire carries them: an untracked body's pose is kept when finite, else zeroed
+    (receivers refuse non-finite numbers); an unknown or non-finite marker error is sent as NaN."""
+    qx, qy, qz, qw = body.quat_xyzw
+    err = body.mean_error
+    p = body.pos
+    q = (qw, qx, qy, qz)
+    if not ok and not all(map(math.isfinite, (*p, *q))):
+        p, q = (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)  # an untracked body's numbers may be anything
+    if err is None or not math.isfinite(err):
+        err = math.nan
+    return p, q, err
+
+
 def encode_pose(
     t: int,
     fn: int,
@@ -77,17 +96,9 @@ def encode_pose(
     tsrc: str,
     tp: int,
 ) -> bytes:
-    """The msgpack bytes of the :class:`~arena_common.core.wire.MocapPose` for ``body`` (Motive's x, y, z, w
-    quaternion becomes the wire's w, x, y, z). An untracked body's pose is kept when finite, else zeroed
-    (receivers refuse non-finite numbers); an unknown or non-finite marker error is sent as NaN."""
-    qx, qy, qz, qw = body.quat_xyzw
-    err = body.mean_error
-    p = body.pos
-    q = (qw, qx, qy, qz)
-    if not ok and not all(map(math.isfinite, (*p, *q))):
-        p, q = (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)  # an untracked body's numbers may be anything
-    if err is None or not math.isfinite(err):
-        err = math.nan
+    """The msgpack bytes of the :class:`~arena_common.core.wire.MocapPose` for ``body`` (see
+    :func:`body_numbers`)."""
+    p, q, err = body_numbers(body, ok)
     return wire.MocapPose(t, fn, body.id, p, q, ok, name, err, lat, mts, tsrc, tp).encode()
 
 
@@ -102,7 +113,7 @@ def _valid(body: RigidBody) -> bool:
 
 
 class Ingest:
-    """Maps rigid bodies to vehicles and publishes their poses; one publisher per vehicle."""
+    """Maps rigid bodies to vehicles and publishes each frame (and, while watched, each vehicle's pose)."""
 
     def __init__(self, svc: Service, cfg: ArenaConfig) -> None:
         self.svc = svc
@@ -117,6 +128,9 @@ class Ingest:
         self.pubs = {
             v: svc.bus.stream_publisher(keys.mocap(v), wire.MocapPose, Lane.CONTROL) for v in cfg.vehicles
         }
+        self.frames = svc.bus.stream_publisher(keys.FRAMES, wire.MocapFrame, Lane.CONTROL)
+        self.watched: dict[str, bool] = dict.fromkeys(cfg.vehicles, True)  # until Zenoh is first asked
+        self._next_watch = 0.0
         self.unknown_pubs: dict[str, Publisher[wire.MocapPose]] = {}
         self.tracked: dict[str, bool] = {}
         self._logged: dict[str, float] = {}
@@ -165,8 +179,17 @@ class Ingest:
             self._logged[vehicle] = now
             self.svc.log.info("%s: tracking %s", vehicle, "regained" if ok else "lost")
 
+    def _watch(self) -> None:
+        """Ask Zenoh (at most every :data:`WATCH_PERIOD`) which vehicles' ``mocap`` keys have subscribers."""
+        now = time.monotonic()
+        if now >= self._next_watch:
+            self._next_watch = now + WATCH_PERIOD
+            for vehicle, pub in self.pubs.items():
+                self.watched[vehicle] = pub.matching
+
     def handle(self, frame: TimedFrame) -> int:
-        """Publish every body of one frame; return how many poses went out."""
+        """Publish one frame (and the watched vehicles' poses); return how many poses went out."""
+        self._watch()
         if frame.models != self._models:
             self._routes.clear()
             self._models = frame.models
@@ -180,7 +203,9 @@ class Ingest:
         if not math.isfinite(mts):
             self.svc.reject("bad_timestamp", f"Motive timestamp {mts} in frame {fn}; sent as 0")
             mts = 0.0
-        out = unknown = 0
+        out = unknown = unwatched = 0
+        bodies: list[wire.MocapBody] = []
+        watched = self.watched
         for body in frame.bodies:
             route = routes.get(body.id)
             if route is None:
@@ -196,15 +221,26 @@ class Ingest:
             if ok and not _valid(body):
                 ok = False
                 self.svc.reject("bad_pose", f"body {body.id}: pos {body.pos}, quat {body.quat_xyzw}")
-            route.pub.put_raw(encode_pose(t, fn, body, ok, route.name, lat, mts, tsrc, tp))
+            p, q, err = body_numbers(body, ok)
+            if vehicle:
+                bodies.append(wire.MocapBody(vehicle, body.id, p, q, ok, route.name, err))
+            if not vehicle or watched[vehicle]:
+                pose = wire.MocapPose(t, fn, body.id, p, q, ok, route.name, err, lat, mts, tsrc, tp)
+                route.pub.put_raw(pose.encode())
+            else:
+                unwatched += 1
             out += 1
             if vehicle and self.tracked.get(vehicle) is not ok:
                 self._tracking_changed(vehicle, ok)
+        if bodies:
+            self.frames.put(wire.MocapFrame(t, fn, tuple(bodies), lat, mts, tsrc, tp))
         self._count("in")
         if out:
             self._count("out", out)
         if unknown:
             self._count("unknown", unknown)
+        if unwatched:
+            self._count("unwatched", unwatched)  # poses of vehicles whose mocap key nobody reads
         self.published += out
         self.svc.stats.latency((tp - t) / 1e9)
         return out
@@ -270,7 +306,8 @@ def cli(
     host: HostOpt = None,
     log_level: LogOpt = "INFO",
 ) -> None:
-    """Receive Motive's rigid bodies and publish each vehicle's on arena/<drone>/mocap."""
+    """Receive Motive's rigid bodies; publish each frame on arena/sys/frames and each vehicle's on
+    arena/<drone>/mocap."""
     setup_logging(log_level)
     cfg = load_config(config)
     main(cfg, bus_options(mode, connect, listen, zconfig), host=host)

@@ -61,13 +61,25 @@ def mocap(fn: int, p: tuple[float, float, float], q: tuple[float, ...], ok: bool
     return wire.MocapPose(t=T0 + fn * DT, fn=fn, id=1, p=p, q=q, ok=ok, name="d1")  # type: ignore[arg-type]
 
 
+def frame(*bodies: tuple[str, wire.MocapPose]) -> wire.MocapFrame:
+    """The mocap frame of the ingest carrying ``(drone, sample)`` bodies (frame fields from the first)."""
+    m = bodies[0][1]
+    b = tuple(wire.MocapBody(d, s.id, s.p, s.q, s.ok, s.name, s.err) for d, s in bodies)
+    return wire.MocapFrame(t=m.t, fn=m.fn, b=b, lat=m.lat, mts=m.mts, tsrc=m.tsrc, tp=m.tp)
+
+
 class Link:
-    """A publisher of one drone's mocap and a FIFO of its arena poses, once the service is reachable."""
+    """A publisher of one drone's mocap frames and a FIFO of its arena poses, once the service is reachable."""
 
     def __init__(self, bus: Bus, drone: str = "d1") -> None:
-        self.pub = bus.stream_publisher(keys.mocap(drone), wire.MocapPose)
+        self.drone = drone
+        self.pub = bus.stream_publisher(keys.FRAMES, wire.MocapFrame)
         self.sub = bus.subscribe(keys.pose(drone), capacity=10_000, ring=False)
         self.got: list[wire.Pose] = []
+
+    def put(self, sample: wire.MocapPose) -> None:
+        """Publish ``sample`` as the one body of a frame."""
+        self.pub.put(frame((self.drone, sample)))
 
     def poll(self) -> list[wire.Pose]:
         self.got.extend(i.payload for i in self.sub.channel.drain() if i.payload is not None)
@@ -78,7 +90,7 @@ class Link:
         warm = mocap(0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), ok=False)
 
         def answered() -> list[wire.Pose]:
-            self.pub.put(warm)
+            self.put(warm)
             return self.poll()
 
         wait_for(answered, timeout=20, interval=0.05, what="first pose")
@@ -87,7 +99,7 @@ class Link:
     def exchange(self, samples: list[wire.MocapPose]) -> list[wire.Pose]:
         """Publish ``samples`` and return the poses answering them (by frame number)."""
         for s in samples:
-            self.pub.put(s)
+            self.put(s)
         want = {s.fn for s in samples}
         wait_for(lambda: want <= {p.fn for p in self.poll()}, timeout=10, what="every pose")
         return [p for p in self.got if p.fn in want]
@@ -194,24 +206,57 @@ def test_bad_payloads_are_counted_and_the_service_lives(
     bus = bus_factory()
     link = Link(bus)
     stats = bus.subscribe(keys.stats("test", "transform"), capacity=100, ring=False)
-    wrong = bus.stream_publisher(keys.mocap("d1"), wire.Pose)  # a Pose on a mocap key
+    wrong = bus.stream_publisher(keys.FRAMES, wire.Pose)  # a Pose on the frames key
     with service_thread(frame_transform.main, cfg, host="test"):
         link.warm_up()
         link.pub.put_raw(b"\x93\x01\x02\x03")  # msgpack, not a map
         link.pub.put_raw(b"\xc1")  # not msgpack at all
-        link.pub.put_raw(wire.MocapPose(t=1, fn=1, id=1, p=(0, 0, 0), q=(2.0, 0, 0, 0), ok=True).encode())
+        bad_body = wire.MocapBody(
+            "d1", 1, (0.0, 0.0, 0.0), (2.0, 0.0, 0.0, 0.0), True
+        )  # not a unit quaternion
+        link.pub.put_raw(wire.MocapFrame(t=1, fn=1, b=(bad_body,)).encode())
         wrong.put(wire.Pose(t=1, p=(0.0, 0.0, 0.0), q=(1.0, 0.0, 0.0, 0.0), ok=True))
         after = link.exchange([mocap(5, (1.0, 2.0, 3.0), (1.0, 0.0, 0.0, 0.0))])
         assert after[0].ok and after[0].p == pytest.approx((1.0, 3.0, -2.0))
 
         def counted() -> wire.Stats | None:
             s = latest_stats(stats, "transform")
-            # The Pose on a mocap key is refused by its decoder (its encoding names another type).
+            # The Pose on the frames key is refused by its decoder (its encoding names another type).
             return s if s and s.rejected.get("bad_payload", 0) == 4 else None
 
         snap = wait_for(counted, timeout=10, interval=0.1, what="rejections in the stats")
     assert snap.counts["in"] >= 6 and snap.counts["out"] >= 2
     assert snap.counts["invalid"] >= 1  # the warm-up samples
+
+
+def test_one_frame_carries_every_vehicle_and_unwatched_full_rate_poses_are_not_sent(
+    arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
+) -> None:
+    """One frame in, each vehicle's pose and vision out; decimating, a pose nobody reads is not published."""
+    cfg = arena_config(2, DECIMATE_IN_TRANSFORM)
+    bus = bus_factory()
+    link = Link(bus)  # reads d1's full-rate poses; nobody reads d2's
+    vision2 = bus.subscribe(keys.vision("d2"), capacity=10_000, ring=False)
+    stats = bus.subscribe(keys.stats("test", "transform"), capacity=100, ring=False)
+    sent: list[int] = []
+    with service_thread(frame_transform.main, cfg, host="test"):
+        link.warm_up()
+
+        def counted() -> wire.Stats | None:
+            for _ in range(18):  # a tenth of a second of frames, each with both vehicles
+                fn = 1000 + len(sent)
+                d1 = mocap(fn, (0.001 * fn, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))
+                link.pub.put(frame(("d1", d1), ("d2", d1.replace(id=2, p=(1.0, 2.0, 3.0)))))
+                sent.append(fn)
+            s = latest_stats(stats, "transform")
+            return s if s and s.counts.get("unwatched", 0) >= 20 else None
+
+        snap = wait_for(counted, timeout=20, interval=0.1, what="d2's unwatched poses counted")
+        wait_for(lambda: set(sent) <= {p.fn for p in link.poll()}, timeout=10, what="every d1 pose")
+    vision = [i.payload for i in vision2.channel.drain()]
+    assert len(vision) >= 0.2 * len(sent), (len(vision), len(sent))  # 50 of 180 Hz: d2's vision went on
+    assert all(isinstance(v, wire.Pose) and v.p == pytest.approx((1.0, 3.0, -2.0)) for v in vision)
+    assert snap.counts["out"] + snap.counts["unwatched"] > snap.counts["in"]  # frames in, bodies out
 
 
 def test_runs_as_a_process(
@@ -289,13 +334,13 @@ def test_a_transform_behind_sheds_full_rate_poses_never_vision(
         warm = mocap(0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), ok=False)
 
         def reading() -> bool:
-            link.pub.put(warm)
+            link.put(warm)
             return count("in") > 0
 
         wait_for(reading, timeout=20, what="the transform reading")
         before = count("shed")
         for i in range(180):
-            link.pub.put(mocap(1000 + i, (0.001 * i, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
+            link.put(mocap(1000 + i, (0.001 * i, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)))
         wait_for(
             lambda: count("shed") >= before + 180, timeout=10, what="every full-rate pose counted as shed"
         )

@@ -143,6 +143,7 @@ def query(bus: Bus, key: str, raw: bytes, encoding: str = "", timeout: float = 5
 
 TYPES_BY_KEY: dict[str, type[wire.Payload]] = {
     keys.mocap("d1"): wire.MocapPose,
+    keys.FRAMES: wire.MocapFrame,
     keys.pose("d1"): wire.Pose,
     keys.vision("d1"): wire.Pose,
     keys.setpoint("d1"): wire.Setpoint,
@@ -161,6 +162,9 @@ def valid_example(cls: type[wire.Payload]) -> wire.Payload:
     now = wire.now_ns()
     examples: dict[type[wire.Payload], wire.Payload] = {
         wire.MocapPose: wire.MocapPose(t=now, fn=1, id=1, p=(0.1, 0.2, 0.3), q=(1.0, 0.0, 0.0, 0.0), ok=True),
+        wire.MocapFrame: wire.MocapFrame(
+            t=now, fn=1, b=(wire.MocapBody("d1", 1, (0.1, 0.2, 0.3), (1.0, 0.0, 0.0, 0.0), True),)
+        ),
         wire.Pose: wire.Pose(t=now, p=(0.1, 0.2, -0.3), q=(1.0, 0.0, 0.0, 0.0), ok=True),
         wire.Setpoint: wire.Setpoint(t=now, p=(0.0, 0.0, -1.0)),
         wire.State: wire.State(t=now, q=(1.0, 0.0, 0.0, 0.0)),
@@ -207,6 +211,14 @@ def wrong_values(spec: Spec) -> list[Any]:
         out += [[1, 2], "x", 5]
     elif spec.kind == "strs":
         out += [[1, 2], "x", 5, ["a"] * 300]
+    elif spec.kind == "items":
+        body = {"v": "d1", "id": 1, "p": [0.0, 0.0, 0.0], "q": [1.0, 0.0, 0.0, 0.0], "ok": True}
+        out += [5, "x", [5], [{**body, "p": [0.0, "x", 0.0]}], [{**body, "v": "sys"}], [{**body, "ok": 1}]]
+        out += [
+            [{**body, "q": [2.0, 0.0, 0.0, 0.0]}],
+            [body] * 300,
+            [{k: v for k, v in body.items() if k != "id"}],
+        ]
     return out
 
 
@@ -394,7 +406,7 @@ def test_bad_payloads_on_every_key_are_refused_counted_and_never_reach_the_vehic
 
     publish()
     want = {
-        "transform": sent[keys.mocap("d1")],
+        "transform": sent[keys.FRAMES],
         "downsampler.d1": sent[keys.pose("d1")],
         "estop": sent[keys.ESTOP],
         "recorder": sum(sent.values()),

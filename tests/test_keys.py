@@ -32,10 +32,13 @@ def test_builders_and_parser_agree() -> None:
         "alive", extra="ground/gateway.d1"
     )
     assert keys.parse(keys.stats("ground", "mocap")).kind == "stats"
+    assert keys.FRAMES == "arena/sys/frames"
+    assert keys.parse(keys.FRAMES) == keys.ParsedKey("frames")
+    assert keys.parse(keys.TIME) == keys.ParsedKey("time")
 
 
 def test_parse_refuses_unknown_keys() -> None:
-    for key in ["other/d1/pose", "arena/d1/nothing", "arena/sys/what", "arena"]:
+    for key in ["other/d1/pose", "arena/d1/nothing", "arena/sys/what", "arena", "arena/sys/frames/d1"]:
         with pytest.raises(InvalidName):
             keys.parse(key)
 
@@ -47,3 +50,8 @@ def test_every_table_row_is_a_known_kind() -> None:
         for k, v in samples.items():
             key = key.replace(k, v)
         keys.parse(key)
+
+
+def test_the_frames_key_is_in_the_table_once_as_a_stream_of_mocap_frames() -> None:
+    rows = [spec for spec in keys.KEYS if spec.pattern == keys.FRAMES]
+    assert [(r.payload, r.qos) for r in rows] == [("MocapFrame", "stream")]

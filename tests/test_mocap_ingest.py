@@ -178,6 +178,11 @@ def test_bodies_reach_their_vehicles(
         assert pose.err == pytest.approx(0.0002)
         assert seen[d2][-1].id == 2 and seen[d2][-1].name == "whatever"
         assert seen[stranger][-1].id == 9 and seen[stranger][-1].name == "Rigid Body 9"
+        # One frame message carries every claimed body (not the stranger), as their per-vehicle poses say.
+        by_fn = {f.fn: f for f in seen[keys.FRAMES]}
+        frame = by_fn[pose.fn]
+        assert [(b.v, b.id, b.name) for b in frame.b] == [("d1", 7, "d1"), ("d2", 2, "whatever")]
+        assert frame.pose(frame.b[0]) == pose
 
         # d1 loses tracking: published, never silently valid.
         server.bodies[0].tracked = False
@@ -196,6 +201,34 @@ def test_bodies_reach_their_vehicles(
         feed(server, sub, seen, lambda: {"garbage", "unknown_message"} <= set(rejected()), "rejects in stats")
         counts = seen[stats_key][-1].counts
         assert counts["in"] > 0 and counts["out"] >= 3 and counts["unknown"] > 0
+    finally:
+        server.close()
+
+
+def test_a_vehicles_mocap_key_is_published_only_while_someone_reads_it(
+    tmp_path: Path,
+    router_endpoint: str,
+    bus_factory: Callable[[], Bus],
+    service: Callable[..., threading.Event],
+) -> None:
+    cfg = make_config(tmp_path, router_endpoint, n_vehicles=1)
+    server = server_for(cfg, version="4.0", bodies=[Body(3, "d1", (0.1, 0.2, 0.3))])
+    bus = bus_factory()
+    sub = bus.subscribe(keys.FRAMES, capacity=10_000, ring=False)
+    stats = bus.subscribe(keys.stats("test", "mocap"), capacity=100, ring=False)
+    seen: dict[str, Any] = {}
+    try:
+        service(cfg)
+        feed(server, sub, seen, lambda: len(seen.get(keys.FRAMES, [])) >= 10, "frames")
+
+        def unwatched() -> float:
+            last = [i.payload for i in stats.channel.drain() if isinstance(i.payload, wire.Stats)]
+            return last[-1].counts.get("unwatched", 0) if last else 0
+
+        feed(server, sub, seen, lambda: unwatched() > 0, "d1's poses counted as read by nobody")
+        mocap = bus.subscribe(keys.mocap("d1"), capacity=10_000, ring=False)
+        feed(server, mocap, seen, lambda: keys.mocap("d1") in seen, "d1's poses once someone reads them")
+        assert seen[keys.mocap("d1")][-1].p == pytest.approx((0.1, 0.2, 0.3))
     finally:
         server.close()
 

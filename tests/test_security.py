@@ -64,6 +64,7 @@ def test_owners_and_rules(tmp_path: Path) -> None:
     table = owners(cfg)
     assert table["arena/c1/state"] == {"cc1"} and table["arena/c2/cmd"] == {"cc2"}
     assert table["arena/c1/pose"] == {"ground"} and table["arena/c1/truth"] == set()
+    assert table["arena/sys/frames"] == table["arena/c1/mocap"] == {"ground"}  # the mocap host's
     acl = access_control(cfg, SecuritySpec(enabled=True, users_file="u", command_hosts=("laptop",)))
     assert acl["default_permission"] == "allow"
     rules = {r["id"]: r for r in acl["rules"]}

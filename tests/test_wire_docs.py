@@ -153,11 +153,22 @@ def test_schemas_agree_with_msgspecs_own_schema_of_the_structs() -> None:
         theirs, ours = defs[cls.__name__], wire.json_schema(cls)
         assert list(ours["properties"]) == list(theirs["properties"]), cls
         assert ours["required"] == theirs.get("required", []), cls
-        for name, prop in ours["properties"].items():
-            if "type" in prop:
-                assert prop["type"] == theirs["properties"][name]["type"], (cls, name)
-            else:  # optional (anyOf the type and null) or NaN allowed (a number or null)
-                assert {"type": "null"} in prop["anyOf"], (cls, name)
+        _same_properties(cls, ours, theirs, defs)
+
+
+def _same_properties(cls: type, ours: dict[str, Any], theirs: dict[str, Any], defs: dict[str, Any]) -> None:
+    for name, prop in ours["properties"].items():
+        if "type" in prop:
+            assert prop["type"] == theirs["properties"][name]["type"], (cls, name)
+        else:  # optional (anyOf the type and null) or NaN allowed (a number or null)
+            assert {"type": "null"} in prop["anyOf"], (cls, name)
+        if prop.get("type") == "array" and prop["items"].get("type") == "object":  # an ``items`` field
+            theirs_items = theirs["properties"][name]
+            item = defs[theirs_items["items"]["$ref"].rsplit("/", 1)[1]]
+            assert prop.get("maxItems") == theirs_items.get("maxItems"), (cls, name)
+            assert list(prop["items"]["properties"]) == list(item["properties"]), (cls, name)
+            assert prop["items"]["required"] == item.get("required", []), (cls, name)
+            _same_properties(cls, prop["items"], item, defs)
 
 
 def test_wire_md_documents_every_key_type_field_and_encoding() -> None:
@@ -169,6 +180,12 @@ def test_wire_md_documents_every_key_type_field_and_encoding() -> None:
         assert f"`{cls.encoding()}`" in text
         for _, spec in cls._specs:
             assert f"| `{spec.wire}` |" in text
+            if spec.item is not None:  # the element type's own table follows the type's
+                section = text.split(f"### `arena.{cls.SCHEMA}/", 1)[1].split("\n### ", 1)[0]
+                assert f"| `{spec.wire}` | {spec.item.SCHEMA}[] |" in section
+                table = section.split(f"Each element of `{spec.wire}` is a map, `{spec.item.SCHEMA}`", 1)[1]
+                for _, element in spec.item._specs:
+                    assert f"| `{element.wire}` |" in table, (cls, element.wire)
     for op in wire.COMMAND_OPS:
         assert f"`{op}`" in text
 
@@ -239,6 +256,38 @@ def test_vector_json_validates_against_its_schema(path: Path) -> None:
         broken = {k: v for k, v in vec["json"].items() if k != name}
         assert not validator.is_valid(broken), f"missing {name} accepted"
         assert not validator.is_valid(vec["json"] | {name: {"wrong": "type"}}), f"bad {name} accepted"
+    # Nor inside the elements of an array of maps.
+    for name, prop in schema["properties"].items():
+        item = prop.get("items", {})
+        for i, element in enumerate(vec["json"].get(name, []) if item.get("type") == "object" else []):
+            for field in item["required"]:
+                others = [e for j, e in enumerate(vec["json"][name]) if j != i]
+                broken = {k: v for k, v in element.items() if k != field}
+                assert not validator.is_valid(vec["json"] | {name: [*others, broken]}), f"{name}[].{field}"
+                wrong = element | {field: {"wrong": "type"}}
+                assert not validator.is_valid(vec["json"] | {name: [*others, wrong]}), f"{name}[].{field}"
+
+
+def test_mocap_frame_schema_validates_frames_and_refuses_bad_elements() -> None:
+    validator = jsonschema.Draft202012Validator(wire.json_schema(wire.MocapFrame))
+    body = wire.MocapBody(v="d1", id=1, p=(0.0, 0.0, 0.0), q=(1.0, 0.0, 0.0, 0.0), ok=True)
+    frame = wire.MocapFrame(t=1, fn=1, b=(body, body.replace(v="d2", ok=False, err=0.001)))
+    jsonable = wire.to_jsonable(frame)
+    assert jsonable["b"][0]["err"] is None  # NaN, as JSON has it
+    validator.validate(jsonable)
+    validator.validate(wire.to_jsonable(frame.replace(b=())))
+    validator.validate(wire.to_jsonable(frame.replace(b=(body,) * 256)))
+    bad = [
+        jsonable | {"b": [wire.to_jsonable(body)] * 257},
+        jsonable | {"b": "x"},
+        jsonable | {"b": [5]},
+        jsonable | {"b": [jsonable["b"][0] | {"p": [0.0, "x", 0.0]}]},
+        jsonable | {"b": [jsonable["b"][0] | {"q": [1.0, 0.0, 0.0]}]},
+        jsonable | {"b": [jsonable["b"][0] | {"ok": 1}]},
+        jsonable | {"b": [jsonable["b"][0] | {"v": 7}]},
+    ]
+    for data in bad:
+        assert not validator.is_valid(data), data
 
 
 # -- golden vectors in JavaScript ----------------------------------------------------------------------
@@ -281,6 +330,9 @@ def test_node_decodes_every_golden_vector_exactly_as_python(node_decoded: dict[s
         assert js_equal(py, node_decoded[name]), f"{name}: node decoded {node_decoded[name]!r}, python {py!r}"
     # Times above 2^53 reached JavaScript as exact BigInts.
     assert node_decoded["pose_tracked"]["t"] == {"$int": "1700000000123456789"}
+    # Maps inside an array (MocapFrame's bodies) keep their fields, NaN included.
+    assert node_decoded["mocapframe_two_bodies"]["b"][1]["err"] == {"$float": "nan"}
+    assert node_decoded["mocapframe_empty"]["b"] == []
 
 
 def test_the_js_comparison_catches_the_mistakes_it_exists_for() -> None:

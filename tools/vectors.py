@@ -83,6 +83,39 @@ VECTORS: tuple[Vector, ...] = (
         "unknown latency (-1).",
     ),
     Vector(
+        "mocapframe_two_bodies",
+        keys.FRAMES,
+        wire.MocapFrame(
+            t=_T,
+            fn=123456,
+            b=(
+                wire.MocapBody(
+                    v="d1",
+                    id=1,
+                    p=(0.512, 1.2085, -0.75),
+                    q=(0.9238795325112867, 0.0, 0.3826834323650898, 0.0),
+                    ok=True,
+                    name="cf1",
+                    err=0.00021,
+                ),
+                wire.MocapBody(v="d2", id=2, p=(0.0, 0.0, 0.0), q=(0.0, 0.0, 0.0, 0.0), ok=False, name="cf2"),
+            ),
+            lat=4_250_000,
+            mts=1234.5678,
+            tsrc="echo",
+            tp=_T + 150_000,
+        ),
+        "One Motive frame with two vehicles' bodies: d1 tracked (as in `mocappose_tracked`), d2 untracked "
+        "(`ok` false, its p and q mean nothing; unknown marker error: NaN, JSON null).",
+    ),
+    Vector(
+        "mocapframe_empty",
+        keys.FRAMES,
+        wire.MocapFrame(t=_T, fn=123458, b=()),
+        "A frame without bodies: `b` is an empty array (valid; decoders must accept it); other fields at "
+        "their defaults.",
+    ),
+    Vector(
         "pose_tracked",
         keys.pose("d1"),
         wire.Pose(

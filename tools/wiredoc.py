@@ -48,11 +48,18 @@ def _compact(v: Any) -> str:
 
 
 def payload_json(data: dict[str, Any], indent: str = "") -> str:
-    """A payload's JSON with one field per line (values on one line), as in the vectors and ``wire.md``."""
+    """A payload's JSON with one field per line (values on one line), as in the vectors and ``wire.md``;
+    an array of maps (an ``items`` field) has one element per line."""
     if not data:
         return "{}"
-    body = ",\n".join(f"{indent}  {_compact(k)}: {_compact(v)}" for k, v in data.items())
+    body = ",\n".join(f"{indent}  {_compact(k)}: {_field_json(v, indent + '  ')}" for k, v in data.items())
     return "{\n" + body + "\n" + indent + "}"
+
+
+def _field_json(v: Any, indent: str) -> str:
+    if not (isinstance(v, list) and v and all(isinstance(e, dict) for e in v)):
+        return _compact(v)
+    return "[\n" + ",\n".join(f"{indent}  {_compact(e)}" for e in v) + "\n" + indent + "]"
 
 
 def _vector_text(vec: Vector) -> str:
@@ -272,7 +279,7 @@ _KIND_TYPE = {
     "quat": "float64[4]",
     "strs": "str[]",
     "map": "map",
-}
+}  # and kind ``items``: ``<element type>[]`` (see _type_name)
 
 # Rules the field specs alone do not express (each payload's ``check`` and key-specific meaning).
 _RULES: dict[str, list[str]] = {
@@ -304,6 +311,16 @@ _RULES: dict[str, list[str]] = {
     ],
     "Estop": ["Every gateway acts on it, whatever vehicle it serves; publish it reliably."],
     "Stats": ["Published every second by every service on `arena/sys/stats/<host>/<service>`."],
+    "MocapFrame": [
+        "At most one message per Motive frame, with one element in `b` per rigid body a vehicle claims: "
+        "`b[i].v` names the vehicle (a valid vehicle name). A decoder accepts an empty `b`.",
+        "`b[i].q` must have unit norm (±0.001) when `b[i].ok` is true; when `ok` is false `p` and `q` "
+        "mean nothing.",
+        "`p` and `q` are in Motive's frame (Y-up or Z-up, set in the configuration), not the arena's.",
+        "Each element with the frame's `t`, `fn`, `lat`, `mts`, `tsrc` and `tp` says what that vehicle's "
+        "`MocapPose` on `arena/<drone>/mocap` says for the same frame.",
+        "A decoder names a wrong field inside an element by its path: `b[1].q`.",
+    ],
 }
 
 
@@ -343,7 +360,36 @@ def _range(spec: wire.Spec) -> str:
         parts.append("≤ 256 items")
     if spec.kind == "map":
         parts.append("string keys")
+    if spec.kind == "items":
+        if spec.max_items is not None:
+            parts.append(f"≤ {spec.max_items} items")
+        parts.append("each a map, fields below")
     return "; ".join(parts)
+
+
+def _type_name(spec: wire.Spec) -> str:
+    if spec.item is not None:
+        return f"{spec.item.SCHEMA}[]"
+    return _KIND_TYPE[spec.kind]
+
+
+def _field_table(cls: type[wire.Payload]) -> list[str]:
+    """The field table of one type, then one table per ``items`` field for its elements' fields."""
+    out = ["| wire name | type | unit | range | required | description |", "|---|---|---|---|---|---|"]
+    for name, spec in cls._specs:
+        out.append(
+            f"| `{spec.wire}` | {_type_name(spec)} | {spec.unit or '—'} | {_md_escape(_range(spec))} | "
+            f"{_required(cls, name, spec)} | {_md_escape(spec.doc)} |"
+        )
+    out.append("")
+    for _, spec in cls._specs:
+        if spec.item is not None:
+            out += [
+                f"Each element of `{spec.wire}` is a map, `{spec.item.SCHEMA}`: {spec.item.DOC} Its fields:",
+                "",
+                *_field_table(spec.item),
+            ]
+    return out
 
 
 def _required(cls: type[wire.Payload], name: str, spec: wire.Spec) -> str:
@@ -415,14 +461,7 @@ def _type_section(cls: type[wire.Payload], annotated: bool) -> list[str]:
     ks = _keys_for(cls.SCHEMA)
     if ks:
         out.append("- Keys: " + ", ".join(f"`{k.pattern}` ({k.qos})" for k in ks))
-    out += ["", "| wire name | type | unit | range | required | description |", "|---|---|---|---|---|---|"]
-    for name, spec in cls._specs:
-        kind = _KIND_TYPE[spec.kind]
-        out.append(
-            f"| `{spec.wire}` | {kind} | {spec.unit or '—'} | {_md_escape(_range(spec))} | "
-            f"{_required(cls, name, spec)} | {_md_escape(spec.doc)} |"
-        )
-    out.append("")
+    out += ["", *_field_table(cls)]
     rules = _RULES.get(cls.SCHEMA, [])
     if rules:
         out += ["Rules:", ""] + [f"- {r}" for r in rules] + [""]
@@ -512,7 +551,8 @@ def _conventions_section() -> list[str]:
         "- **Numbers.** `int` fields hold msgpack integers of any width (the encoder picks the smallest: "
         "fixint, uint8 … uint64, int8 … int64); a reader must accept all of them, and a float is refused. "
         "`float64` fields are written as msgpack float64; a reader should also accept float32 and integers "
-        "there. `float64[3]` and `float64[4]` are msgpack arrays of exactly 3 or 4 numbers.",
+        "there. `float64[3]` and `float64[4]` are msgpack arrays of exactly 3 or 4 numbers. `<Type>[]` "
+        "is a msgpack array of maps, each with the fields of the table below the type's own.",
         "- **SI units**: metres, seconds, radians, m/s, rad/s, volts, hertz, bytes; the unit column says "
         "which. Fractions are 0–1, not percent (except `Stats.cpu`).",
         "- **Times** are integer nanoseconds since the Unix epoch (UTC wall clock): `t` is when the value "
@@ -524,14 +564,15 @@ def _conventions_section() -> list[str]:
         "(`v_world = q ⊗ v_body ⊗ q*`).",
         "- **Frames.** The arena frame is **NED** (north along the long side, east, down into the floor; "
         "origin at the floor's centre); vehicle bodies are **FRD** (forward, right, down). Angular "
-        "velocities are in the body frame. Only `MocapPose` is in Motive's own frame.",
+        "velocities are in the body frame. Only `MocapPose` and `MocapFrame` are in Motive's own frame.",
         "- **Unknown values.** Where a field says so, NaN means unknown (msgpack float64 NaN; JSON "
         "renderings, including the golden vectors' `json`, write it as `null`). Optional fields are "
         "**omitted** when unknown (a reader should treat `nil` like an absent field). A field with a "
         "default may be omitted by a sender; the reader then uses the default. Fields marked required "
         "must be present.",
-        "- **Limits.** Strings are at most 4096 characters, string arrays at most 256 items; a decoder "
-        "refuses a payload that breaks a field's type or range and names the field.",
+        "- **Limits.** Strings are at most 4096 characters, string arrays at most 256 items, arrays of maps "
+        "at most what their range says; a decoder refuses a payload that breaks a field's type or range and "
+        "names the field (`b[1].q` for a field of an array's element).",
         "",
     ]
 
@@ -545,7 +586,8 @@ def _languages_section() -> list[str]:
         "vector this way and the test suite checks it against the Python decoder, value by value.",
         "- **Rust**: `rmp-serde` with a serde struct per payload: `i64` for `int`, `f64` for `float64`, "
         "`[f64; 3]` / `[f64; 4]` for vectors and quaternions, `Option<…>` for optional fields, "
-        "`#[serde(default)]` on fields that have a default, `HashMap<String, rmpv::Value>` for maps; serde "
+        "`#[serde(default)]` on fields that have a default, `HashMap<String, rmpv::Value>` for maps, "
+        "`Vec<T>` of a struct per element type for arrays of maps (`MocapBody[]`); serde "
         "ignores unknown keys unless told otherwise, which is what the contract wants.",
         "- **C**: any msgpack reader (msgpack-c, mpack, cmp): read the map, look fields up by name, keep "
         "times in `int64_t`, skip keys you do not know. Take the payload bytes with zenoh-c's "

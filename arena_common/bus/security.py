@@ -58,7 +58,10 @@ def owners(cfg: ArenaConfig) -> dict[str, set[str]]:
     for v in cfg.vehicles:
         for leaf in ("mocap", "pose", "vision", "state", "telemetry/**", "events", "cmd", "truth"):
             own(f"arena/{v}/{leaf}", None)
+    own("arena/sys/frames", None)
     for h in cfg.hosts.values():
+        if "mocap" in h.services:
+            own("arena/sys/frames", h.name)
         for v in cfg.vehicles:
             if "mocap" in h.services:
                 own(f"arena/{v}/mocap", h.name)

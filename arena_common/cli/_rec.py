@@ -29,7 +29,7 @@ RecorderOpt = Annotated[
     str, typer.Option("--recorder", "-r", help="Host of the recorder to control ('*': every recorder).")
 ]
 STREAM_KINDS = frozenset(
-    {"mocap", "pose", "vision", "state", "telemetry", "setpoint", "truth", "stats", "bodies"}
+    {"mocap", "frames", "pose", "vision", "state", "telemetry", "setpoint", "truth", "stats", "bodies"}
 )
 
 

@@ -14,10 +14,13 @@ from collections.abc import Callable
 import typer
 
 RUN = {
-    "mocap": ("services.mocap_ingest", "Mocap ingest: NatNet (or another source) → arena/<drone>/mocap."),
+    "mocap": (
+        "services.mocap_ingest",
+        "Mocap ingest: NatNet (or another source) → arena/sys/frames (and arena/<drone>/mocap).",
+    ),
     "transform": (
         "services.frame_transform",
-        "Frame transform: arena/*/mocap → arena/<drone>/pose (NED/FRD).",
+        "Frame transform: arena/sys/frames → arena/<drone>/pose (NED/FRD).",
     ),
     "downsampler": ("services.downsampler", "Downsampler: arena/<drone>/pose → arena/<drone>/vision."),
     "gateway": ("services.mavlink_gateway", "MAVLink gateway of one vehicle: the bus ↔ its PX4."),

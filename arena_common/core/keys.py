@@ -7,6 +7,7 @@ generated from the same data.  Vehicle keys all live under ``arena/<drone>/``; s
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 
@@ -58,6 +59,12 @@ KEYS: tuple[KeySpec, ...] = (
     KeySpec("arena/estop", "Estop", "reliable", "Stop everything: land every vehicle (or kill)."),
     KeySpec("arena/sys/alive/<host>/<service>", "—", "liveliness", "Presence token of each running service."),
     KeySpec("arena/sys/stats/<host>/<service>", "Stats", "stream", "Counters of each service, every second."),
+    KeySpec(
+        "arena/sys/frames",
+        "MocapFrame",
+        "stream",
+        "Every vehicle's rigid body of one mocap frame (Motive frame), one message per frame.",
+    ),
     KeySpec("arena/sys/bodies/<body>", "MocapPose", "stream", "Rigid bodies no vehicle claims (optional)."),
     KeySpec("arena/sys/rec/<host>", "Command → CommandResult", "query", "Recorder control (start/stop)."),
     KeySpec(
@@ -83,14 +90,22 @@ def validate_name(name: str, what: str = "vehicle name") -> str:
     """
     if not isinstance(name, str) or not name:
         raise InvalidName(f"invalid {what} {name!r}: must be a non-empty string")
+    problem = _name_problem(name, what)
+    if problem:
+        raise InvalidName(f"invalid {what} {name!r}: {problem}")
+    return name
+
+
+@functools.lru_cache(maxsize=1024)  # the same few names are checked in every frame and every key
+def _name_problem(name: str, what: str) -> str:
     bad = sorted({c for c in name if c in _FORBIDDEN})
     if bad:
-        raise InvalidName(f"invalid {what} {name!r}: contains {' '.join(repr(c) for c in bad)}")
+        return f"contains {' '.join(repr(c) for c in bad)}"
     if not _NAME_RE.match(name):
-        raise InvalidName(f"invalid {what} {name!r}: use letters, digits, '_', '-', '.' (at most 63)")
+        return "use letters, digits, '_', '-', '.' (at most 63)"
     if what == "vehicle name" and name in RESERVED_NAMES:
-        raise InvalidName(f"invalid {what} {name!r}: reserved")
-    return name
+        return "reserved"
+    return ""
 
 
 def _vehicle(drone: str, leaf: str) -> str:
@@ -171,6 +186,7 @@ def clock(host: str, service: str) -> str:
 
 
 TIME = f"{ROOT}/sys/time"
+FRAMES = f"{ROOT}/sys/frames"
 CLOCK_ALL = f"{ROOT}/sys/clock/**"
 ALIVE_ALL = f"{ROOT}/sys/alive/**"
 STATS_ALL = f"{ROOT}/sys/stats/**"
@@ -199,8 +215,8 @@ def parse(key: str) -> ParsedKey:
             return ParsedKey("bodies", extra=parts[3])
         if len(parts) == 4 and parts[2] == "rec":
             return ParsedKey("rec", extra=parts[3])
-        if len(parts) == 3 and parts[2] == "time":
-            return ParsedKey("time")
+        if len(parts) == 3 and parts[2] in ("time", "frames"):
+            return ParsedKey(parts[2])
         raise InvalidName(f"unknown system key: {key!r}")
     drone = validate_name(parts[1])
     if len(parts) == 3 and parts[2] in (

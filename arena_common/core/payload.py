@@ -77,7 +77,7 @@ class Spec:
     """How one field travels, read from its annotation: wire name, kind, unit, range and description."""
 
     wire: str
-    kind: str  # int, float, bool, str, vec3, quat, map, strs
+    kind: str  # int, float, bool, str, vec3, quat, map, strs, items
     doc: str
     unit: str = ""
     lo: float | None = None
@@ -86,6 +86,8 @@ class Spec:
     nan_ok: bool = False
     choices: tuple[str, ...] = ()
     required: bool = False
+    item: type[Payload] | None = None  # kind ``items``: the type of each element (declared with ``part``)
+    max_items: int | None = None
 
 
 _KINDS: dict[type, str] = {
@@ -109,8 +111,13 @@ def _spec(cls: type, field: msgspec.inspect.Field) -> Spec:
     if meta is None or not doc:
         raise TypeError(f"{cls.__name__}.{field.name}: annotate it with _int, _float or _doc")
     extra, t = meta.extra or {}, meta.type
+    item: Any = None
     if isinstance(t, msgspec.inspect.TupleType):
         kind = {3: "vec3", 4: "quat"}[len(t.item_types)]
+    elif isinstance(t, msgspec.inspect.VarTupleType) and isinstance(t.item_type, msgspec.inspect.StructType):
+        kind, item = "items", t.item_type.cls
+        if not hasattr(item, "_specs"):
+            raise TypeError(f"{cls.__name__}.{field.name}: declare {item.__name__} with @part")
     else:
         kind = _KINDS[type(t)]
     lo = getattr(t, "ge", None)  # int64 and finite-float bounds are the kind's, not a range
@@ -126,6 +133,8 @@ def _spec(cls: type, field: msgspec.inspect.Field) -> Spec:
         nan_ok=extra.get("nan_ok", False),
         choices=extra.get("choices", ()),
         required=field.required,
+        item=item,
+        max_items=getattr(t, "max_length", None) if item is not None else None,
     )
 
 
@@ -185,9 +194,7 @@ class Payload(msgspec.Struct, frozen=True, omit_defaults=True):
         if not isinstance(data, Mapping):
             raise PayloadError(f"expected a map, got {type(data).__name__}", key=key, type_name=cls.SCHEMA)
         data = dict(data)
-        for name in cls._nan_ok:
-            if name in data and data[name] is None:
-                data[name] = math.nan  # nil stands for "unknown" where NaN is allowed
+        _nil_to_nan(cls, data)
         try:
             obj = msgspec.convert(data, cls)
         except msgspec.ValidationError as exc:
@@ -219,6 +226,23 @@ class Payload(msgspec.Struct, frozen=True, omit_defaults=True):
         return msgspec.structs.replace(self, **changes)
 
 
+def _nil_to_nan(cls: type[Payload], data: dict[str, Any]) -> None:
+    """Nil stands for "unknown" where NaN is allowed (JSON has no NaN), here and in ``items`` elements."""
+    for name in cls._nan_ok:
+        if name in data and data[name] is None:
+            data[name] = math.nan
+    for _, spec in cls._specs:
+        elements = data.get(spec.wire) if spec.item is not None else None
+        if isinstance(elements, (list, tuple)):
+            fixed = []
+            for e in elements:
+                if isinstance(e, Mapping):
+                    e = dict(e)
+                    _nil_to_nan(spec.item, e)  # type: ignore[arg-type]
+                fixed.append(e)
+            data[spec.wire] = fixed
+
+
 def _enc_hook(obj: Any) -> Any:
     """Numbers of subclasses msgspec does not take as they are (e.g. numpy.float64), as plain ones."""
     if isinstance(obj, float):
@@ -243,8 +267,26 @@ _WHERE = re.compile(
 )
 
 
-def _explain(cls: type[Payload], data: dict[str, Any], message: str) -> tuple[str, str]:
+_WITHIN = re.compile(
+    r"(?P<what>.*) - at (?P<in_key>`key` in )?`\$\.(?P<field>\w+)\[(?P<i>\d+)\](?P<rest>(?:[.\[].*)?)`"
+)
+
+
+def _explain(cls: type[Payload], data: Any, message: str) -> tuple[str, str]:
     """``(field, reason)`` in the wire's words for msgspec's ``message`` about ``data``."""
+    within = _WITHIN.fullmatch(message)
+    if within:  # inside one element of an ``items`` field: explained by the element's type
+        spec = cls._by_wire.get(within["field"])
+        i = int(within["i"])
+        if spec is not None and spec.item is not None:
+            element = data.get(spec.wire)[i]
+            if not isinstance(element, Mapping):
+                return f"{spec.wire}[{i}]", f"expected a map, got {type(element).__name__}"
+            where = f" - at {within['in_key'] or ''}`${within['rest']}`"
+            if not within["rest"] and not within["in_key"]:
+                where = ""  # about the element itself (a field missing)
+            field, reason = _explain(spec.item, element, within["what"] + where)
+            return f"{spec.wire}[{i}]" + (f".{field}" if field else ""), reason
     m = _WHERE.fullmatch(message)
     assert m is not None  # the pattern matches any text
     missing = re.fullmatch(r"Object missing required field `(\w+)`", m["what"])
@@ -256,6 +298,12 @@ def _explain(cls: type[Payload], data: dict[str, Any], message: str) -> tuple[st
     value = data.get(spec.wire)
     if value is None:
         return spec.wire, "must not be nil"
+    if spec.kind == "items":
+        if not isinstance(value, (list, tuple)):
+            return spec.wire, f"expected an array of maps, got {type(value).__name__}"
+        if m["i"] is not None:
+            return f"{spec.wire}[{m['i']}]", f"expected a map, got {type(value[int(m['i'])]).__name__}"
+        return spec.wire, f"more than {spec.max_items} elements"
     if spec.kind in ("vec3", "quat"):
         n = 3 if spec.kind == "vec3" else 4
         if not isinstance(value, (list, tuple)) or len(value) != n or m["i"] is None:
@@ -304,6 +352,14 @@ REGISTRY: dict[str, type[Payload]] = {}
 
 def payload(cls: type[T]) -> type[T]:
     """Class decorator: read the field specs from the annotations, build the decoder, register the schema."""
+    part(cls)
+    REGISTRY[cls.SCHEMA] = cls
+    return cls
+
+
+def part(cls: type[T]) -> type[T]:
+    """Class decorator for a type that travels only inside another payload (an ``items`` field's
+    element): its field specs and decoder, not registered as a schema of its own."""
     info = msgspec.inspect.type_info(cls)
     assert isinstance(info, msgspec.inspect.StructType)
     fields = info.fields
@@ -317,7 +373,6 @@ def payload(cls: type[T]) -> type[T]:
     )
     cls._nan_ok = tuple(name for name, spec in cls._specs if spec.nan_ok)
     cls._decoder = msgspec.msgpack.Decoder(cls)
-    REGISTRY[cls.SCHEMA] = cls
     return cls
 
 

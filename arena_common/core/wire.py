@@ -18,6 +18,8 @@ import functools
 import math
 from typing import Annotated, Any
 
+from msgspec import Meta
+
 from arena_common.core import keys
 from arena_common.core.errors import InvalidName, PayloadError
 from arena_common.core.payload import (
@@ -38,6 +40,7 @@ from arena_common.core.payload import (
     _quat_problem,
     default_of,
     now_ns,
+    part,
     payload,
 )
 
@@ -53,6 +56,8 @@ __all__ = [  # the machinery's public names, re-exported: users import the wire 
     "Estop",
     "Event",
     "Map",
+    "MocapBody",
+    "MocapFrame",
     "MocapPose",
     "Payload",
     "Pose",
@@ -69,6 +74,7 @@ __all__ = [  # the machinery's public names, re-exported: users import the wire 
     "default_of",
     "json_schema",
     "now_ns",
+    "part",
     "payload",
     "to_jsonable",
     "type_for_encoding",
@@ -80,6 +86,20 @@ __all__ = [  # the machinery's public names, re-exported: users import the wire 
 _LANDED = ("undefined", "on_ground", "in_air", "takeoff", "landing")
 _TSRC = ("echo", "latency", "arrival", "sim")
 
+# Fields a MocapPose shares with a MocapFrame (the frame's) and with a MocapBody (the body's).
+_MeasuredAt = Annotated[int, _int("Measurement time (camera mid-exposure on the local clock)", unit="ns")]
+_FrameNumber = Annotated[int, _int("Motive frame number", lo=0)]
+_BodyId = Annotated[int, _int("Motive rigid-body id")]
+_MotiveP = Annotated[Vec3, _doc("Position x, y, z in Motive's frame", unit="m")]
+_MotiveQ = Annotated[Quat, _doc("Attitude quaternion w, x, y, z in Motive's frame (body to world)")]
+_Tracked = Annotated[bool, _doc("Tracking valid (Motive's rigid-body params bit 0)")]
+_BodyName = Annotated[Str, _doc("Rigid-body name from Motive's model definitions")]
+_MarkerError = Annotated[float, _float("Mean marker error (NaN when unknown)", unit="m", nan_ok=True)]
+_Latency = Annotated[int, _int("System latency, camera exposure to transmit (-1 unknown)", unit="ns")]
+_MotiveTime = Annotated[float, _float("Motive's session timestamp", unit="s")]
+_TimeSource = Annotated[Str, _doc("How `t` was obtained", choices=_TSRC)]
+_Published = Annotated[int, _int("Publish time", unit="ns")]
+
 
 @payload
 class MocapPose(Payload, frozen=True):
@@ -87,25 +107,88 @@ class MocapPose(Payload, frozen=True):
 
     SCHEMA = "MocapPose"
     DOC = "A rigid body as Motive streamed it, in Motive's frame; `ok` false when Motive lost tracking."
-    t: Annotated[int, _int("Measurement time (camera mid-exposure on the local clock)", unit="ns")]
-    fn: Annotated[int, _int("Motive frame number", lo=0)]
-    id: Annotated[int, _int("Motive rigid-body id")]
-    p: Annotated[Vec3, _doc("Position x, y, z in Motive's frame", unit="m")]
-    q: Annotated[Quat, _doc("Attitude quaternion w, x, y, z in Motive's frame (body to world)")]
-    ok: Annotated[bool, _doc("Tracking valid (Motive's rigid-body params bit 0)")]
-    name: Annotated[Str, _doc("Rigid-body name from Motive's model definitions")] = _always("")
-    err: Annotated[float, _float("Mean marker error (NaN when unknown)", unit="m", nan_ok=True)] = _always(
-        math.nan
-    )
-    lat: Annotated[int, _int("System latency, camera exposure to transmit (-1 unknown)", unit="ns")] = (
-        _always(-1)
-    )
-    mts: Annotated[float, _float("Motive's session timestamp", unit="s")] = _always(0.0)
-    tsrc: Annotated[Str, _doc("How `t` was obtained", choices=_TSRC)] = _always("arrival")
-    tp: Annotated[int, _int("Publish time", unit="ns")] = _always(0)
+    t: _MeasuredAt
+    fn: _FrameNumber
+    id: _BodyId
+    p: _MotiveP
+    q: _MotiveQ
+    ok: _Tracked
+    name: _BodyName = _always("")
+    err: _MarkerError = _always(math.nan)
+    lat: _Latency = _always(-1)
+    mts: _MotiveTime = _always(0.0)
+    tsrc: _TimeSource = _always("arrival")
+    tp: _Published = _always(0)
 
     def check(self) -> tuple[str, str] | None:
         return super().check() or (_quat_problem(self.q, "q") if self.ok else None)
+
+
+@part
+class MocapBody(Payload, frozen=True):
+    """One rigid body of a :class:`MocapFrame`: what a :class:`MocapPose` says of it beyond the frame."""
+
+    SCHEMA = "MocapBody"
+    DOC = "One rigid body of a mocap frame, in Motive's frame."
+    v: Annotated[Str, _doc("The vehicle that claims this body")]
+    id: _BodyId
+    p: _MotiveP
+    q: _MotiveQ
+    ok: _Tracked
+    name: _BodyName = _always("")
+    err: _MarkerError = _always(math.nan)
+
+    def check(self) -> tuple[str, str] | None:
+        problem = super().check() or (_quat_problem(self.q, "q") if self.ok else None)
+        if problem is None:
+            try:
+                keys.validate_name(self.v)
+            except InvalidName as exc:
+                return "v", str(exc)
+        return problem
+
+
+@payload
+class MocapFrame(Payload, frozen=True):
+    """Every claimed rigid body of one mocap frame: one message per frame for a stage that handles all
+    bodies (the frame transform), instead of one per body."""
+
+    SCHEMA = "MocapFrame"
+    DOC = "Every vehicle's rigid body of one Motive frame, in Motive's frame (one message per frame)."
+    t: _MeasuredAt
+    fn: _FrameNumber
+    b: Annotated[tuple[MocapBody, ...], Meta(max_length=256), _doc("The bodies, one per claimed vehicle")]
+    lat: _Latency = _always(-1)
+    mts: _MotiveTime = _always(0.0)
+    tsrc: _TimeSource = _always("arrival")
+    tp: _Published = _always(0)
+
+    def check(self) -> tuple[str, str] | None:
+        problem = super().check()
+        if problem:
+            return problem
+        for i, body in enumerate(self.b):
+            problem = body.check()
+            if problem:
+                return f"b[{i}].{problem[0]}", problem[1]
+        return None
+
+    def pose(self, body: MocapBody) -> MocapPose:
+        """``body`` as the :class:`MocapPose` the per-vehicle ``mocap`` key carries for this frame."""
+        return MocapPose(
+            self.t,
+            self.fn,
+            body.id,
+            body.p,
+            body.q,
+            body.ok,
+            body.name,
+            body.err,
+            self.lat,
+            self.mts,
+            self.tsrc,
+            self.tp,
+        )
 
 
 @payload
@@ -384,6 +467,7 @@ _KIND_TO_TYPE: dict[str, type[Payload]] = {
     "estop": Estop,
     "stats": Stats,
     "bodies": MocapPose,
+    "frames": MocapFrame,
     "cmd": Command,
     "rec": Command,
     "clock": ClockOffset,
@@ -465,15 +549,27 @@ _JSON_KIND: dict[str, dict[str, Any]] = {
 }
 
 
-def json_schema(cls: type[Payload]) -> dict[str, Any]:
-    """JSON Schema (draft 2020-12) of one payload type's JSON rendering, generated from its Struct fields.
-
-    It describes :func:`to_jsonable`'s output rather than the msgpack bytes, so NaN is ``null``.
-    """
+def _json_properties(cls: type[Payload]) -> tuple[dict[str, Any], list[str]]:
+    """The JSON Schema ``properties`` and ``required`` of one type's fields."""
     props: dict[str, Any] = {}
     required: list[str] = []
     for _, spec in cls._specs:
-        prop = dict(_JSON_KIND[spec.kind])
+        if spec.item is not None:
+            item_props, item_required = _json_properties(spec.item)
+            prop: dict[str, Any] = {
+                "type": "array",
+                "items": {
+                    "type": "object",
+                    "description": spec.item.DOC,
+                    "properties": item_props,
+                    "required": item_required,
+                    "additionalProperties": True,
+                },
+            }
+            if spec.max_items is not None:
+                prop["maxItems"] = spec.max_items
+        else:
+            prop = dict(_JSON_KIND[spec.kind])
         if spec.choices:
             prop["enum"] = list(spec.choices)
         desc = spec.doc + (f" [{spec.unit}]" if spec.unit else "")
@@ -492,6 +588,15 @@ def json_schema(cls: type[Payload]) -> dict[str, Any]:
         props[spec.wire] = prop
         if spec.required:
             required.append(spec.wire)
+    return props, required
+
+
+def json_schema(cls: type[Payload]) -> dict[str, Any]:
+    """JSON Schema (draft 2020-12) of one payload type's JSON rendering, generated from its Struct fields.
+
+    It describes :func:`to_jsonable`'s output rather than the msgpack bytes, so NaN is ``null``.
+    """
+    props, required = _json_properties(cls)
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "$id": f"arena.{cls.SCHEMA}/{cls.VERSION}",

@@ -15,7 +15,8 @@ and runs them in threads:
 - **commands** — the ``arena/<drone>/cmd`` queryable (two workers), and ``arena/estop``;
 - **events** — published in order from their own thread, so a congested bus never stalls the rest;
 - **supervisor** (the caller's thread, :meth:`Gateway.run`) — State at ``state_rate`` (published while
-  anyone subscribes; raw telemetry likewise, per message type), our HEARTBEAT
+  anyone subscribes, else built only for its events at ``unwatched_rate``; raw telemetry is published
+  while anyone subscribes, per message type), our HEARTBEAT
   at 1 Hz, our TIMESYNC probe at 1 Hz, link-loss detection (no HEARTBEAT for 3 s) and re-opening the
   link, the arena parameter check when the link comes up.
 
@@ -83,6 +84,7 @@ __all__ = ["Gateway", "GatewayOptions"]
 MAV_TYPE_GCS = 6
 MAV_AUTOPILOT_INVALID = 8
 MSG_ESTIMATOR_STATUS = 230
+WATCH_PERIOD = 0.5  # s between asking Zenoh whether anyone subscribes to the state
 
 
 @dataclass(frozen=True, slots=True)
@@ -92,6 +94,7 @@ class GatewayOptions:
     source_system: int = 245  # our MAVLink system id (255 is QGroundControl's)
     source_component: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
     state_rate: float = 50.0  # Hz, arena/<drone>/state
+    unwatched_rate: float = 10.0  # Hz of the supervisor's checks while nobody subscribes to the state
     telemetry_rate: float = 10.0  # Hz per message type on arena/<drone>/telemetry/<MSG>; 0 = none
     stream_rate: float = 20.0  # Hz, offboard setpoints repeated while their lease runs
     link_timeout: float = 3.0  # s without HEARTBEAT = link lost
@@ -226,6 +229,7 @@ class Gateway:
             self._handlers[MSG["GPS_GLOBAL_ORIGIN"]] = self.origin.on_gps_global_origin
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._state_watched = True  # until Zenoh is asked (by the supervisor)
         self._state_pub = (
             bus.stream_publisher(keys.state(v.name), wire.State, Lane.REPORT) if bus is not None else None
         )
@@ -300,12 +304,16 @@ class Gateway:
     def run(self, stop: threading.Event) -> None:
         """The supervisor loop, in the caller's thread, until ``stop`` is set."""
         period = 1.0 / self.options.state_rate
+        unwatched = max(period, 1.0 / self.options.unwatched_rate)
         now = time.monotonic()
-        next_state, next_second = now, now
+        next_state, next_second, next_watch = now, now, now
         while not stop.is_set() and not self._stop.is_set():
             now = time.monotonic()
+            if now >= next_watch and self._state_pub is not None:
+                next_watch = now + WATCH_PERIOD  # whether anyone subscribes, asked of Zenoh
+                self._state_watched = self._state_pub.matching
             if now >= next_state:
-                next_state = max(next_state + period, now)
+                next_state = max(next_state + (period if self._state_watched else unwatched), now)
                 self.publish_state(now)
             if now >= next_second:
                 next_second = max(next_second + 1.0, now)
@@ -576,7 +584,7 @@ class Gateway:
             fs=tuple(flags),
             tp=t,
         )
-        if self._state_pub is not None and self._state_pub.matching:  # nobody listening: nothing to send
+        if self._state_pub is not None and self._state_watched:  # nobody listening: nothing to send
             self._safe(self._state_pub.put, msg)
         return msg
 

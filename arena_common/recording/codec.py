@@ -119,6 +119,7 @@ def from_json_map(cls: type[wire.Payload], obj: Mapping[str, Any]) -> dict[str, 
     """The wire map of a JSON form (the inverse of :func:`to_json_map` where it is faithful)."""
     nan_ok = {s.wire for _, s in cls._specs if s.nan_ok}
     times = _time_fields(cls)
+    items = {s.wire: s.item for _, s in cls._specs if s.item is not None}
     out: dict[str, Any] = {}
     for k, v in obj.items():
         if k == RAW_FIELD:
@@ -127,6 +128,8 @@ def from_json_map(cls: type[wire.Payload], obj: Mapping[str, Any]) -> dict[str, 
             v = time_from_json(v)
         elif v is None and k in nan_ok:
             v = math.nan
+        elif k in items and isinstance(v, list):  # elements' own NaN fields
+            v = [from_json_map(items[k], e) if isinstance(e, Mapping) else e for e in v]
         out[k] = v
     return out
 
