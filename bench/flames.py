@@ -8,8 +8,10 @@ frame and everything it called: the width of its box in the flame graph) and *se
 as shares of that service's samples, and how much of the time the process held the GIL (its samples over
 the samples the rate and duration allow: its Python work, comparable across the two runs).
 
-Run the same points in both (e.g. ``-p pipeline -n 20 -r 180 --decimate transform --overload 0 --profile``
-in a checkout of each revision) and pick the point with ``--point`` (0: the first that ran).
+Run the same points in both (e.g. ``-p pipeline -n 20 -r 180 -d 10 --decimate transform --overload 0
+--profile`` in a checkout of each revision) and pick the point with ``--point`` (0: the first that ran).
+``docs/profiles/before`` and ``docs/profiles/after`` hold the profiles of docs/performance.md (collapsed
+stacks: speedscope or any flame-graph tool draws them).
 """
 
 from __future__ import annotations
@@ -68,9 +70,14 @@ def read(path: Path, limit: int = 6) -> Flame:
     return Flame(total, top(incl), top(own))
 
 
-def point_files(run_dir: Path, service: str) -> list[Path]:
-    """The service's profile files of a run, in the order the load points ran."""
-    return sorted(run_dir.glob(f"profile-*/{service}-*.txt"), key=lambda p: int(p.stem.rsplit("-", 1)[1]))
+def profile_file(run_dir: Path, service: str, point: int) -> Path | None:
+    """The service's profile at load point ``point`` of a run (``<service>.txt`` when the directory holds
+    one profile per service, as ``docs/profiles/`` does), or None."""
+    single = run_dir / f"{service}.txt"
+    if single.exists():
+        return single
+    files = sorted(run_dir.glob(f"profile-*/{service}-*.txt"), key=lambda p: int(p.stem.rsplit("-", 1)[1]))
+    return files[point] if point < len(files) else None
 
 
 def table(before: Path, after: Path, point: int, rate: float, seconds: float) -> str:
@@ -81,11 +88,11 @@ def table(before: Path, after: Path, point: int, rate: float, seconds: float) ->
     ]
     for service in SERVICES:
         for label, run in (("before", before), ("after", after)):
-            files = point_files(run, service)
-            if len(files) <= point:
+            path = profile_file(run, service, point)
+            if path is None:
                 rows.append(f"| {service} | {label} | — | (no profile) | |")
                 continue
-            f = read(files[point])
+            f = read(path)
             incl = "; ".join(f"{name} {pct:.0f} %" for name, pct in f.inclusive)
             own = "; ".join(f"{name} {pct:.0f} %" for name, pct in f.self_time)
             held = 100.0 * f.samples / (rate * seconds)

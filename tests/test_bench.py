@@ -115,6 +115,7 @@ def test_payload_sizes_grow_with_bodies() -> None:
     one, ten = payload_sizes(1), payload_sizes(10)
     assert ten["natnet"] > one["natnet"] > 0
     assert one["mocap"] > 50 and one["pose"] > 50 and one["odometry"] > 200
+    assert ten["frames"] > one["frames"] > 50  # one message carries every body of a frame
 
 
 def test_bad_options_name_the_problem() -> None:
@@ -366,3 +367,34 @@ def test_targets_from_a_synthetic_run() -> None:
     }
     why = _targets(gone)["gateway CPU per forwarded vision message"]
     assert why.met is None and why.measured == "MAVProxy: mavproxy exited with status 1: … ImportError: x"
+
+
+def test_flames_compare_the_widest_and_the_busiest_frames(tmp_path: Path) -> None:
+    from bench import flames
+
+    stacks = {
+        "before": [
+            "Thread.run (threading.py:982);main (services/frame_transform.py:9);"
+            "PoseConverter.convert (services/frame_transform.py:90);update (arena_common/geometry/filters.py:5) 30",
+            "Thread.run (threading.py:982);main (services/frame_transform.py:9);Channel.get "
+            "(arena_common/bus/session.py:140) 70",
+        ],
+        "after": ["main (services/frame_transform.py:9);Channel.get (arena_common/bus/session.py:141) 10"],
+    }
+    for label, lines in stacks.items():
+        (tmp_path / label).mkdir()
+        (tmp_path / label / "transform.txt").write_text("\n".join(lines) + "\n")
+    before = flames.read(tmp_path / "before" / "transform.txt")
+    assert before.samples == 100
+    # Inclusive: the arena's own frames below the entry points; self: the leaves, file names without lines.
+    assert before.inclusive == [
+        ("Channel.get (session.py)", 70.0),
+        ("PoseConverter.convert (frame_transform.py)", 30.0),
+        ("update (filters.py)", 30.0),
+    ]
+    assert before.self_time == [("Channel.get (session.py)", 70.0), ("update (filters.py)", 30.0)]
+    table = flames.table(tmp_path / "before", tmp_path / "after", 0, rate=100.0, seconds=2.0)
+    rows = {tuple(c.strip() for c in r.split("|")[1:3]): r for r in table.splitlines()}
+    assert "| 50.0 % |" in rows[("transform", "before")]  # 100 samples of 100 Hz × 2 s
+    assert "| 5.0 % |" in rows[("transform", "after")]
+    assert "(no profile)" in rows[("gateway.d1", "after")]
