@@ -91,7 +91,10 @@ def bench(
         "docs/performance.md"
     ),
     rerender: Annotated[
-        Path | None, typer.Option("--from", help="Re-render the tables (and docs) from a stored JSON result.")
+        Path | None,
+        typer.Option(
+            "--from", help="Re-render the tables (and docs, unless --no-docs) from a stored result."
+        ),
     ] = None,
 ) -> None:
     """Measure the arena: end-to-end latency, loss, vision rate, CPU and memory at 1 and 20 vehicles × 180 Hz
@@ -100,7 +103,7 @@ def bench(
     from bench import run as bench_mod
 
     if rerender is not None:
-        bench_mod.rerender(rerender, docs_file)
+        bench_mod.rerender(rerender, docs_file if docs is not False else None)
         return
     changes: dict[str, Any] = {
         "out_dir": out,

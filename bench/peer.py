@@ -22,7 +22,8 @@ begins with one idle window in which none gets a message (their idle CPU).
 
 Latency is send → arrival.  CPU per message is the process's CPU over the stream (schedstat, ns) divided
 by the messages it forwarded (``total``), and the same less its idle CPU over the same time
-(``marginal``).  The summary of each forwarder is the median of its runs with their min–max spread.
+(``marginal``).  The summary of each forwarder is the median of its runs with their min–max spread.  A
+sweep of higher rates (one short run each) shows how much of a message's cost is the wake-ups it pays.
 """
 
 from __future__ import annotations
@@ -354,9 +355,16 @@ def _ratio(a: dict[str, Any], b: dict[str, Any], key: str) -> float:
     return float(x / y)
 
 
-def run_peers(rate: float, settings: RunSettings, repeats: int = 3) -> dict[str, Any]:
+SWEEP_SECONDS = 1.0  # per forwarder and rate of the sweep
+
+
+def run_peers(
+    rate: float, settings: RunSettings, repeats: int = 3, sweep: tuple[float, ...] = ()
+) -> dict[str, Any]:
     """The gateway, its two floors and MAVProxy, each forwarding ``rate`` Hz of vision for
-    ``settings.duration`` s, ``repeats`` times in alternating order."""
+    ``settings.duration`` s, ``repeats`` times in alternating order; then one short run of each at every
+    rate of ``sweep`` (``out["sweep"][name][rate]``): how the cost per message falls as messages come
+    closer together (the wake-ups a message pays are shared)."""
     if repeats < 1:
         raise BenchError("the peer comparison needs at least one repetition")
     out: dict[str, Any] = {"rate": rate, "duration": settings.duration, "repeats": repeats}
@@ -393,6 +401,17 @@ def run_peers(rate: float, settings: RunSettings, repeats: int = 3) -> dict[str,
                     )
                 except BenchError as exc:
                     fwd.error = str(exc)
+        out["sweep"] = {name: {} for name in order}
+        for r in sweep:
+            for name in order:
+                fwd = fwds[name]
+                if fwd.error:
+                    continue
+                try:
+                    fig = _window(fwd, collector, r, SWEEP_SECONDS, idle[name], settings.drain)
+                except BenchError as exc:
+                    fig = {"unavailable": str(exc)}
+                out["sweep"][name][f"{r:g}"] = fig
         for name in FORWARDERS:
             fwd_or_none = fwds.get(name)
             if fwd_or_none is None:

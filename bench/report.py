@@ -263,6 +263,43 @@ def hop_rows(points: Sequence[PointResult]) -> list[list[str]]:
     return rows
 
 
+def sweep_header(peer: dict[str, Any]) -> list[str]:
+    """The sweep table's columns: the comparison's rate, then each rate of the sweep."""
+    rates = next((list(d) for d in (peer.get("sweep") or {}).values() if d), [])
+    return ["forwarder", f"{peer.get('rate', 0):g} Hz (median)", *(f"{r} Hz" for r in rates)]
+
+
+def sweep_rows(peer: dict[str, Any]) -> list[list[str]]:
+    """Per forwarder, its marginal CPU per message at the comparison's rate and at each rate of the sweep
+    (× MAVProxy's at the same rate), with what it forwarded where it lost any."""
+    sweep = peer.get("sweep") or {}
+    if not any(sweep.values()):
+        return []
+    mav = sweep.get("mavproxy") or {}
+    rows: list[list[str]] = []
+    for name in PEER_NAMES:
+        d, runs = peer.get(name) or {}, sweep.get(name)
+        if not d or "unavailable" in d or runs is None:
+            continue
+        row = [name, f"{d['marginal_cpu_us_per_msg']:.0f} µs"]
+        base = (peer.get("mavproxy") or {}).get("marginal_cpu_us_per_msg")
+        if base and name != "mavproxy":
+            row[1] += f" (×{d['marginal_cpu_us_per_msg'] / base:.2f})"
+        for rate, fig in runs.items():
+            if "unavailable" in fig:
+                row.append(short_reason(fig["unavailable"]))
+                continue
+            cell = f"{fig['marginal_cpu_us_per_msg']:.0f} µs"
+            ref = (mav.get(rate) or {}).get("marginal_cpu_us_per_msg")
+            if ref and name != "mavproxy":
+                cell += f" (×{fig['marginal_cpu_us_per_msg'] / ref:.2f})"
+            if fig["forwarded"] < fig["sent"]:
+                cell += f", {fig['forwarded']}/{fig['sent']} forwarded"
+            row.append(cell)
+        rows.append(row)
+    return rows
+
+
 PEER_HEADER = [
     "forwarder",
     "runs",
@@ -349,6 +386,14 @@ def markdown_report(result: dict[str, Any]) -> str:
             "",
             _markdown(PEER_HEADER, peer_rows(peer)),
         ]
+        if sweep_rows(peer):
+            parts += [
+                "",
+                "**CPU per message by rate** (marginal, × MAVProxy's at the same rate; the sweep: one run of "
+                "1 s each): the closer messages come, the more of each wake-up they share",
+                "",
+                _markdown(sweep_header(peer), sweep_rows(peer)),
+            ]
     if result.get("micro"):
         parts += [
             "",

@@ -60,6 +60,8 @@ from bench.report import (
     micro_rows,
     peer_rows,
     resource_rows,
+    sweep_header,
+    sweep_rows,
     target_rows,
     update_docs,
 )
@@ -93,6 +95,7 @@ class BenchOptions:
     peer_rate: float = 200.0  # Hz of vision in the peer comparison
     peer_duration: float = 2.5  # s per run of each forwarder
     peer_repeats: int = 3  # runs of each forwarder (alternating order): median and spread
+    peer_sweep: tuple[float, ...] = (1000.0, 4000.0)  # Hz: one short run of each forwarder at each
     micro_scale: float = 1.0  # loop lengths of the micro-benchmarks (1 = full)
     out_dir: Path = Path("bench-results")
     docs: Path | None = Path("docs/performance.md")
@@ -115,6 +118,7 @@ class BenchOptions:
             idle=1.0,
             peer_duration=1.0,
             peer_repeats=1,
+            peer_sweep=(1000.0,),
             micro_scale=0.2,
             quick=True,
         )
@@ -388,13 +392,19 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
             console.print("[bold]peer[/bold]: gateway, its floors and MAVProxy")
             peer_settings = replace(settings, duration=options.peer_duration, profile=None)
             with timed("peer"):
-                result["peer"] = _clean(run_peers(options.peer_rate, peer_settings, options.peer_repeats))
+                result["peer"] = _clean(
+                    run_peers(options.peer_rate, peer_settings, options.peer_repeats, options.peer_sweep)
+                )
             runs = f"median (min–max) of {options.peer_repeats} runs" if options.peer_repeats > 1 else "1 run"
             title = (
                 f"Gateway vs its floors and MAVProxy ({options.peer_rate:g} Hz, {runs} of "
                 f"{options.peer_duration:g} s each)"
             )
             console.print(_rich(title, PEER_HEADER, peer_rows(result["peer"])))
+            if sweep_rows(result["peer"]):
+                console.print(
+                    _rich("CPU per message by rate", sweep_header(result["peer"]), sweep_rows(result["peer"]))
+                )
         if "micro" in options.parts:
             from bench.micro import run_micro
 
@@ -465,10 +475,11 @@ def load_result(path: Path) -> dict[str, Any]:
     return _with_nan(json.loads(path.read_text()))
 
 
-def rerender(path: Path, docs: Path, console: Console | None = None) -> None:
-    """Write the docs block (and print the tables) from a stored result."""
+def rerender(path: Path, docs: Path | None, console: Console | None = None) -> None:
+    """Print the tables of a stored result (and write its docs block into ``docs``)."""
     result = load_result(path)
-    update_docs(docs, result)
+    if docs is not None:
+        update_docs(docs, result)
     console = console or Console(width=None if sys.stdout.isatty() else 160)
     points = [PointResult(**p) for p in result.get("points", [])]
     if points:
@@ -476,4 +487,7 @@ def rerender(path: Path, docs: Path, console: Console | None = None) -> None:
         console.print(_rich("CPU (% of one core) and memory", RESOURCE_HEADER, resource_rows(points)))
     if result.get("peer"):
         console.print(_rich("Gateway vs its floors and MAVProxy", PEER_HEADER, peer_rows(result["peer"])))
+        if sweep_rows(result["peer"]):
+            header = sweep_header(result["peer"])
+            console.print(_rich("CPU per message by rate", header, sweep_rows(result["peer"])))
     console.print(_rich("Targets", ["target", "goal", "measured", ""], target_rows(evaluate_targets(result))))

@@ -398,3 +398,25 @@ def test_flames_compare_the_widest_and_the_busiest_frames(tmp_path: Path) -> Non
     assert "| 50.0 % |" in rows[("transform", "before")]  # 100 samples of 100 Hz × 2 s
     assert "| 5.0 % |" in rows[("transform", "after")]
     assert "(no profile)" in rows[("gateway.d1", "after")]
+
+
+def test_the_rate_sweep_compares_each_forwarder_with_mavproxy_at_the_same_rate() -> None:
+    def fig(us: float, forwarded: int = 1000) -> dict[str, Any]:
+        return {"marginal_cpu_us_per_msg": us, "forwarded": forwarded, "sent": 1000}
+
+    peer: dict[str, Any] = {
+        "rate": 200.0,
+        "gateway": {"marginal_cpu_us_per_msg": 150.0},
+        "mavproxy": {"marginal_cpu_us_per_msg": 300.0},
+        "floor-udp": {"unavailable": "not started"},
+        "sweep": {
+            "gateway": {"1000": fig(100.0), "4000": {"unavailable": "went away"}},
+            "mavproxy": {"1000": fig(250.0, 990), "4000": fig(200.0)},
+        },
+    }
+    assert report.sweep_header(peer) == ["forwarder", "200 Hz (median)", "1000 Hz", "4000 Hz"]
+    rows = {r[0]: r[1:] for r in report.sweep_rows(peer)}
+    assert rows["gateway"][:2] == ["150 µs (×0.50)", "100 µs (×0.40)"] and "went away" in rows["gateway"][2]
+    assert rows["mavproxy"] == ["300 µs", "250 µs, 990/1000 forwarded", "200 µs"]
+    assert "floor-udp" not in rows
+    assert report.sweep_rows({"rate": 200.0}) == []
