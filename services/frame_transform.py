@@ -180,7 +180,7 @@ def main(
                 dropped = sub.channel.dropped
             if item is None:
                 continue
-            svc.stats.count("in")
+            svc.stats.count("frames")
             if item.error is not None:
                 svc.reject("bad_payload", str(item.error))
                 continue
@@ -188,6 +188,7 @@ def main(
             if not isinstance(frame, wire.MocapFrame):
                 svc.reject("wrong_type", f"{item.key} carried {type(frame).__name__}, not MocapFrame")
                 continue
+            svc.stats.count("in", len(frame.b))  # poses in: what the ingest counted out
             if decimators is not None and time.monotonic() >= next_watch:
                 next_watch = time.monotonic() + WATCH_PERIOD
                 watched = {drone: pub.matching for drone, pub in publishers.items()}

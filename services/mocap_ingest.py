@@ -234,6 +234,7 @@ class Ingest:
                 self._tracking_changed(vehicle, ok)
         if bodies:
             self.frames.put(wire.MocapFrame(t, fn, tuple(bodies), lat, mts, tsrc, tp))
+            self._count("frames")
         self._count("in")
         if out:
             self._count("out", out)

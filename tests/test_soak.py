@@ -183,6 +183,7 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
 
     # -- accounting, stage by stage --------------------------------------------------------------------------
     ingest_out = _delta(a, b, "mocap", "out")
+    ingest_frames, tf_frames = _delta(a, b, "mocap", "frames"), _delta(a, b, "transform", "frames")
     tf_in, tf_out = _delta(a, b, "transform", "in"), _delta(a, b, "transform", "out")
     tf_dropped, tf_rejected = _delta(a, b, "transform", "dropped"), _rej(a, b, "transform")
     per: dict[str, dict[str, int]] = {}
@@ -209,7 +210,8 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
     if DECIMATE == "transform":
         # The transform decimates: its vision_* counters are the downsamplers' (summed over vehicles).
         total.update(
-            ds_in=tf_out + _delta(a, b, "transform", "shed"),  # its decimators see shed poses too
+            # Its decimators see every pose, shed ones and those whose full-rate key nobody reads too.
+            ds_in=tf_out + _delta(a, b, "transform", "shed") + _delta(a, b, "transform", "unwatched"),
             ds_out=_delta(a, b, "transform", "vision"),
             ds_skipped=_delta(a, b, "transform", "vision_skipped"),
             ds_invalid=_delta(a, b, "transform", "vision_invalid"),
@@ -222,9 +224,14 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
     stage = "downsamplers" if DECIMATE == "downsampler" else "transform's decimators"
     # Lost without anyone counting it: must never happen.
     losses = {
-        "bus ingest→transform": ingest_out - tf_in - tf_dropped,
+        "bus ingest→transform (frames)": ingest_frames - tf_frames - tf_dropped,
+        "transform bodies": ingest_out - tf_in - tf_dropped * len(soak.names),  # a dropped frame had all
         "transform rejected": tf_rejected,
-        f"bus transform→{stage}": tf_out - total["ds_in"] - total["ds_dropped"],
+        f"bus transform→{stage}": (
+            tf_out - total["ds_in"] - total["ds_dropped"]
+            if DECIMATE == "downsampler"
+            else tf_in - tf_rejected - total["ds_in"]  # in-process: every pose converted reaches them
+        ),
         "downsampler other rejects": total["ds_other_rejects"],
         "bus decimators→gateways": total["ds_out"] - total["on_bus"],
         "gateway other rejects": total["gw_other_rejects"],
