@@ -66,9 +66,12 @@ def cli(
         typer.Option("--allow-gcs-manual", help="Forward RC_CHANNELS_OVERRIDE/MANUAL_CONTROL from the GCS."),
     ] = False,
     telemetry_rate: Annotated[
-        float, typer.Option("--telemetry-rate", help="Raw telemetry per message type, Hz (0: none).")
-    ] = 10.0,
-    state_rate: Annotated[float, typer.Option("--state-rate", help="State publications per second.")] = 50.0,
+        float | None,
+        typer.Option("--telemetry-rate", help="Raw telemetry per message type, Hz (0: none; default: config)."),
+    ] = None,
+    state_rate: Annotated[
+        float | None, typer.Option("--state-rate", help="State publications per second (default: config).")
+    ] = None,
     origin: Annotated[
         str,
         typer.Option(
@@ -89,8 +92,15 @@ def cli(
     cfg = load_config(config)
     if not 1 <= sysid <= 254:
         raise typer.BadParameter(f"--sysid must be within 1..254, got {sysid}")
-    if not state_rate > 0:
+    if state_rate is not None and not state_rate > 0:
         raise typer.BadParameter(f"--state-rate must be positive, got {state_rate}")
+    if telemetry_rate is not None and not telemetry_rate >= 0:
+        raise typer.BadParameter(f"--telemetry-rate must not be negative, got {telemetry_rate}")
+    try:
+        spec = cfg.vehicle(vehicle)
+    except ConfigError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
     try:
         origin_lla = parse_origin(origin)
     except GatewayError as exc:
@@ -99,8 +109,8 @@ def cli(
         source_system=sysid,
         gcs=gcs,
         allow_gcs_manual=allow_gcs_manual,
-        telemetry_rate=telemetry_rate,
-        state_rate=state_rate,
+        telemetry_rate=spec.telemetry_rate if telemetry_rate is None else telemetry_rate,
+        state_rate=spec.state_rate if state_rate is None else state_rate,
         origin=origin_lla,
     )
     try:

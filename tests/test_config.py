@@ -62,6 +62,11 @@ def test_sim_config_has_three_vehicles_with_distinct_ids() -> None:
         ),
         (BASE + '[vehicles.d2]\nmavlink = "udpin:127.0.0.1:1"\nsystem_id = 1\n', "vehicles.d2.system_id"),
         ("[arena\n", "not valid TOML"),
+        (
+            BASE.replace("system_id = 1", "system_id = 1\nstate_rate = 0"),
+            "vehicles.d1.state_rate: expected a number",
+        ),
+        (BASE.replace("system_id = 1", "system_id = 1\ntelemetry_rate = -1"), "vehicles.d1.telemetry_rate"),
     ],
 )
 def test_errors_name_file_and_field(tmp_path: Path, text: str, message: str) -> None:

@@ -132,6 +132,10 @@ class VehicleSpec(Spec, frozen=True):
     vision_rate: Annotated[float, Meta(ge=1.0, le=400.0)] = 50.0
     max_pose_age: Annotated[float, Meta(ge=0.001, le=1.0)] = 0.1
     vision_message: Literal["odometry", "vision_position_estimate"] = "odometry"
+    # Rates of what the gateway publishes, while anyone subscribes: arena/<d>/state, and each raw MAVLink
+    # message type on arena/<d>/telemetry/<MSG> (0: none).
+    state_rate: Annotated[float, Meta(ge=1.0, le=200.0)] = 50.0
+    telemetry_rate: Annotated[float, Meta(ge=0.0, le=200.0)] = 10.0
     require_setup: bool = True
     gcs: str = ""
     signing_key_file: str = ""  # MAVLink 2 signing: a file holding the 32-byte secret key as 64 hex digits
