@@ -67,7 +67,9 @@ def cli(
     ] = False,
     telemetry_rate: Annotated[
         float | None,
-        typer.Option("--telemetry-rate", help="Raw telemetry per message type, Hz (0: none; default: config)."),
+        typer.Option(
+            "--telemetry-rate", help="Raw telemetry per message type, Hz (0: none; default: config)."
+        ),
     ] = None,
     state_rate: Annotated[
         float | None, typer.Option("--state-rate", help="State publications per second (default: config).")
