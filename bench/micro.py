@@ -14,7 +14,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from arena_common.core import wire
+from arena_common.core import keys, wire
 from arena_common.mavlink import fastframe, px4
 from arena_common.mocap import natnet
 
@@ -282,21 +282,30 @@ def _stages(scale: float) -> dict[str, float]:
     from arena_common.mavlink.link import mavlink2
     from arena_common.pipeline.vision import VisionFilter
     from services.frame_transform import PoseConverter
-    from services.mocap_ingest import encode_pose
+    from services.mocap_ingest import body_numbers, encode_pose
 
     n = int(10_000 * scale)
     now = time.time_ns()
     body = natnet.RigidBody(1, (1.2, 0.9, -0.5), (0.0, 0.38268343, 0.0, 0.92387953), 0.0002, True, 1)
-    mocap_raw = encode_pose(now, 1, body, True, "d1", 5_380_000, 12.5, "echo", now)
-    enc_m = wire.MocapPose.encoding()
+    p, q, err = body_numbers(body, True)
+    mocap = wire.MocapBody("d1", 1, p, q, True, "d1", err)
+    frame_raw = wire.MocapFrame(now, 1, (mocap,), 5_380_000, 12.5, "echo", now).encode()
+    enc_f = wire.MocapFrame.encoding()
     conv = PoseConverter(FrameTransform())
     state = {"t": now}
 
     def transform() -> bytes:
         state["t"] += 5_555_555
-        m = wire.decode_any("arena/d1/mocap", mocap_raw, enc_m)
-        assert isinstance(m, wire.MocapPose)
-        return conv.convert("d1", m.replace(t=state["t"])).encode()
+        frame = wire.decode_any(keys.FRAMES, frame_raw, enc_f)
+        assert isinstance(frame, wire.MocapFrame)
+        return conv.convert(frame.replace(t=state["t"]), frame.b[0]).encode()
+
+    def ingest() -> bytes:
+        bodies = []
+        for i in range(10):
+            p, q, err = body_numbers(body, True)
+            bodies.append(wire.MocapBody(f"d{i + 1}", i + 1, p, q, True, "d1", err))
+        return wire.MocapFrame(now, 1, tuple(bodies), 5_380_000, 12.5, "echo", now).encode()
 
     pose_raw = transform()
     enc_p = wire.Pose.encoding()
@@ -319,10 +328,11 @@ def _stages(scale: float) -> dict[str, float]:
         return fastframe.ODOMETRY.frame(fastframe.odometry_payload(args), mav.seq, 245, 191)
 
     return {
-        "ingest: encode MocapPose (per body)": per_call_us(
+        "ingest: a body of a 10-body MocapFrame, built and encoded": per_call_us(ingest, n // 10) / 10,
+        "ingest: encode MocapPose (a watched vehicle's mocap key)": per_call_us(
             lambda: encode_pose(now, 1, body, True, "d1", 5_380_000, 12.5, "echo", now), n
         ),
-        "transform: decode + convert + encode": per_call_us(transform, n),
+        "transform: decode a 1-body frame + convert + encode": per_call_us(transform, n),
         "downsampler: decode + filter + encode": per_call_us(downsample, n),
         "gateway: decode + ODOMETRY encode": per_call_us(gateway, n),
     }

@@ -276,13 +276,13 @@ def sweep_rows(peer: dict[str, Any]) -> list[list[str]]:
     if not any(sweep.values()):
         return []
     mav = sweep.get("mavproxy") or {}
+    base = (peer.get("mavproxy") or {}).get("marginal_cpu_us_per_msg")
     rows: list[list[str]] = []
     for name in PEER_NAMES:
         d, runs = peer.get(name) or {}, sweep.get(name)
         if not d or "unavailable" in d or runs is None:
             continue
         row = [name, f"{d['marginal_cpu_us_per_msg']:.0f} µs"]
-        base = (peer.get("mavproxy") or {}).get("marginal_cpu_us_per_msg")
         if base and name != "mavproxy":
             row[1] += f" (×{d['marginal_cpu_us_per_msg'] / base:.2f})"
         for rate, fig in runs.items():

@@ -22,13 +22,11 @@ them because a shared machine's figures are only as good as its idleness.
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import json
 import math
 import os
 import platform
-import re
 import shutil
 import subprocess
 import sys
@@ -41,6 +39,7 @@ from typing import Any
 
 from rich.console import Console
 
+from bench import flames
 from bench.floor_run import run_floor
 from bench.harness import BenchError, ProcessSet
 from bench.pipeline import CHAINS, PointResult, RunSettings, run_arena
@@ -199,23 +198,6 @@ def _pyspy() -> str | None:
     return str(local) if local.exists() else shutil.which("py-spy")
 
 
-def _top_functions(raw: str, limit: int = 8) -> list[tuple[str, float]]:
-    """Self-time share (%) of the busiest functions in py-spy's raw (collapsed) output."""
-    self_time: collections.Counter[str] = collections.Counter()
-    total = 0
-    for line in raw.splitlines():
-        stack, _, count = line.rpartition(" ")
-        if not stack or not count.isdigit():
-            continue
-        n = int(count)
-        total += n
-        leaf = stack.rsplit(";", 1)[-1]
-        self_time[re.sub(r":\d+\)$", ")", leaf)] += n
-    if not total:
-        return []
-    return [(fn, 100.0 * n / total) for fn, n in self_time.most_common(limit)]
-
-
 def make_profiler(out_dir: Path) -> Callable[[ProcessSet, float], dict[str, Any]]:
     """A profile hook for :class:`RunSettings`: py-spy on the ingest, transform and the first vehicle's
     downsampler and gateway."""
@@ -259,7 +241,7 @@ def make_profiler(out_dir: Path) -> Callable[[ProcessSet, float], dict[str, Any]
                 proc.kill()
                 proc.wait(5)
             try:
-                result[name] = _top_functions(path.read_text())
+                result[name] = flames.read(path, limit=8).self_time
             except OSError:
                 result[name] = []
         return result
@@ -400,11 +382,7 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
                 f"Gateway vs its floors and MAVProxy ({options.peer_rate:g} Hz, {runs} of "
                 f"{options.peer_duration:g} s each)"
             )
-            console.print(_rich(title, PEER_HEADER, peer_rows(result["peer"])))
-            if sweep_rows(result["peer"]):
-                console.print(
-                    _rich("CPU per message by rate", sweep_header(result["peer"]), sweep_rows(result["peer"]))
-                )
+            _print_peer(console, title, result["peer"])
         if "micro" in options.parts:
             from bench.micro import run_micro
 
@@ -433,6 +411,13 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
     console.print(f"result: {path} ({result['elapsed_s']:.0f} s)")
     shutil.rmtree(logs, ignore_errors=True)
     return result
+
+
+def _print_peer(console: Console, title: str, peer: dict[str, Any]) -> None:
+    console.print(_rich(title, PEER_HEADER, peer_rows(peer)))
+    sweep = sweep_rows(peer)
+    if sweep:
+        console.print(_rich("CPU per message by rate", sweep_header(peer), sweep))
 
 
 def _with_nan(result: dict[str, Any]) -> dict[str, Any]:
@@ -486,8 +471,5 @@ def rerender(path: Path, docs: Path | None, console: Console | None = None) -> N
         console.print(_rich("End-to-end latency", LATENCY_HEADER, latency_rows(points)))
         console.print(_rich("CPU (% of one core) and memory", RESOURCE_HEADER, resource_rows(points)))
     if result.get("peer"):
-        console.print(_rich("Gateway vs its floors and MAVProxy", PEER_HEADER, peer_rows(result["peer"])))
-        if sweep_rows(result["peer"]):
-            header = sweep_header(result["peer"])
-            console.print(_rich("CPU per message by rate", header, sweep_rows(result["peer"])))
+        _print_peer(console, "Gateway vs its floors and MAVProxy", result["peer"])
     console.print(_rich("Targets", ["target", "goal", "measured", ""], target_rows(evaluate_targets(result))))

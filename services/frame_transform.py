@@ -6,8 +6,8 @@ wake-up per frame, not per body). Every body is converted with one precomputed
 republished as a :class:`~arena_common.core.wire.Pose` on its vehicle's ``pose`` key, with linear and
 angular velocity from a :class:`~arena_common.geometry.filters.VelocityEstimator` per vehicle. The measurement time
 ``t`` and Motive's frame number ``fn`` are carried through; ``tp`` is the publish time. With the transform
-decimating (below), a vehicle's full-rate ``pose`` is published only while someone subscribes to it (asked
-of Zenoh every :data:`WATCH_PERIOD`); otherwise the downsampler subscribes to every one.
+decimating (below), a vehicle's full-rate ``pose`` is published only while someone subscribes to it;
+otherwise the downsampler subscribes to every one.
 
 Bodies Motive lost (``ok`` false) are passed on with ``ok=False`` so that consumers see the loss; they
 restart the vehicle's velocity estimate and are never made valid here. Undecodable samples are counted
@@ -54,7 +54,6 @@ SUBSCRIPTION = keys.FRAMES
 # One sample per mocap frame: the FIFO absorbs over a second of frames (at 180 Hz) of a stall without ever
 # dropping the frame a decimator needs.
 QUEUE_CAPACITY = 256
-WATCH_PERIOD = 0.5  # s between asking Zenoh whether anyone subscribes to a vehicle's full-rate pose
 MAX_VEHICLES = 256  # bounds the per-vehicle state a misbehaving publisher could make us create
 VELOCITY_CUTOFF_HZ = 15.0
 VELOCITY_MAX_GAP_S = 0.1
@@ -69,7 +68,7 @@ def frame_transform(cfg: ArenaConfig) -> FrameTransform:
 
 @dataclass
 class PoseConverter:
-    """MocapPose → Pose for every vehicle: the frame transform plus one velocity estimator per vehicle.
+    """A mocap frame's bodies → Poses: the frame transform plus one velocity estimator per vehicle.
 
     Not thread-safe: one converter is driven by one thread.
     """
@@ -86,18 +85,19 @@ class PoseConverter:
             est = self._velocity[drone] = VelocityEstimator(self.cutoff_hz, self.max_gap_s)
         return est
 
-    def convert(self, drone: str, m: wire.MocapPose, tp: int | None = None) -> wire.Pose:
-        """Convert one sample of ``drone``; raises :class:`~arena_common.geometry.frames.FrameError` on bad numbers.
+    def convert(self, frame: wire.MocapFrame, m: wire.MocapBody, tp: int | None = None) -> wire.Pose:
+        """Convert body ``m`` (vehicle ``m.v``) of ``frame``; raises
+        :class:`~arena_common.geometry.frames.FrameError` on bad numbers.
 
         A valid sample needs a unit quaternion (to within 1 %). An invalid one (``ok`` false) keeps its
         converted position, and its converted attitude when the quaternion is usable (identity otherwise),
         and restarts the velocity estimate.
         """
-        est = self.estimator(drone)
+        est = self.estimator(m.v)
         tf = self.transform
         if m.ok:
             p, q = tf.pose(m.p, m.q)
-            vel = est.update(m.t, p, q, True)
+            vel = est.update(frame.t, p, q, True)
         else:
             p = tf.position(m.p)
             try:
@@ -111,11 +111,11 @@ class PoseConverter:
         else:  # unknown velocities travel as zeros with vok false (the wire carries no NaN here)
             v, w, vok = _ZERO3, _ZERO3, False
         return wire.Pose(
-            t=m.t,
+            t=frame.t,
             p=p,
             q=q,
             ok=m.ok,
-            fn=m.fn,
+            fn=frame.fn,
             v=v,
             w=w,
             vok=vok,
@@ -169,8 +169,6 @@ def main(
             svc.log.info("decimating %d vehicles into vision in-process", len(decimators.filters))
         sub = svc.bus.subscribe(SUBSCRIPTION, capacity=QUEUE_CAPACITY, ring=False)
         publishers: dict[str, Publisher[wire.Pose]] = {}
-        watched: dict[str, bool] = {}
-        next_watch = 0.0
         shed_ns = int(cfg.pipeline.shed_after * 1e9)
         dropped = 0
         while not svc.stopped:
@@ -189,9 +187,6 @@ def main(
                 svc.reject("wrong_type", f"{item.key} carried {type(frame).__name__}, not MocapFrame")
                 continue
             svc.stats.count("in", len(frame.b))  # poses in: what the ingest counted out
-            if decimators is not None and time.monotonic() >= next_watch:
-                next_watch = time.monotonic() + WATCH_PERIOD
-                watched = {drone: pub.matching for drone, pub in publishers.items()}
             behind = decimators is not None and shed_ns and time.time_ns() - item.t_recv > shed_ns
             for body in frame.b:
                 drone = body.v  # a valid vehicle name: the frame passed its checks when it was decoded
@@ -203,10 +198,9 @@ def main(
                     pub = publishers[drone] = svc.bus.stream_publisher(
                         keys.pose(drone), wire.Pose, Lane.CONTROL
                     )
-                    watched[drone] = True  # until Zenoh is next asked
                     svc.log.info("serving %s", drone)
                 try:
-                    pose = converter.convert(drone, frame.pose(body))
+                    pose = converter.convert(frame, body)
                 except FrameError as exc:
                     svc.reject("bad_pose", f"{item.key}, body {body.id} of {drone}: {exc}")
                     continue
@@ -215,7 +209,7 @@ def main(
                     if behind:
                         svc.stats.count("shed")  # behind: the full-rate pose goes, the vision did not
                         continue
-                    if not watched.get(drone, True):
+                    if not pub.matching:
                         svc.stats.count("unwatched")  # nobody subscribes to the full-rate pose
                         continue
                 pub.put(pose)

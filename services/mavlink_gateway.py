@@ -99,11 +99,6 @@ def cli(
     if telemetry_rate is not None and not telemetry_rate >= 0:
         raise typer.BadParameter(f"--telemetry-rate must not be negative, got {telemetry_rate}")
     try:
-        spec = cfg.vehicle(vehicle)
-    except ConfigError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
-    try:
         origin_lla = parse_origin(origin)
     except GatewayError as exc:
         raise typer.BadParameter(f"--origin: {exc}") from None
@@ -111,8 +106,8 @@ def cli(
         source_system=sysid,
         gcs=gcs,
         allow_gcs_manual=allow_gcs_manual,
-        telemetry_rate=spec.telemetry_rate if telemetry_rate is None else telemetry_rate,
-        state_rate=spec.state_rate if state_rate is None else state_rate,
+        telemetry_rate=telemetry_rate,
+        state_rate=state_rate,
         origin=origin_lla,
     )
     try:

@@ -5,8 +5,8 @@ Reads frames from the source ``mocap.source`` names (NatNet by default, see
 (``vehicles.<name>.rigid_body``) and publishes, still in Motive's frame and with its measurement time, one
 :class:`~arena_common.core.wire.MocapFrame` per frame with every claimed body on ``arena/sys/frames`` (what
 the frame transform reads: one message per frame, not one per body) and, while someone subscribes to it, a
-:class:`~arena_common.core.wire.MocapPose` per body on its vehicle's ``mocap`` key (whether anyone does is
-asked of Zenoh every :data:`WATCH_PERIOD`). Untracked bodies are published with ``ok=False``;
+:class:`~arena_common.core.wire.MocapPose` per body on its vehicle's ``mocap`` key. Untracked bodies are
+published with ``ok=False``;
 bodies no vehicle claims are counted and, with ``mocap.publish_unknown``, published on
 ``arena/sys/bodies/<body>``. Every problem the source meets is counted in the service's stats under its
 reason; the service reconnects by itself and never stops on bad input.
@@ -42,7 +42,6 @@ from arena_common.runtime.options import (
 from arena_common.runtime.service import Service, running, setup_logging
 
 MAX_UNKNOWN_KEYS = 256  # publishers created for unclaimed bodies, at most
-WATCH_PERIOD = 0.5  # s between asking Zenoh whether anyone subscribes to a vehicle's mocap key
 _BAD_KEY_CHARS = re.compile(r"[^A-Za-z0-9_.\-]")
 
 
@@ -129,8 +128,6 @@ class Ingest:
             v: svc.bus.stream_publisher(keys.mocap(v), wire.MocapPose, Lane.CONTROL) for v in cfg.vehicles
         }
         self.frames = svc.bus.stream_publisher(keys.FRAMES, wire.MocapFrame, Lane.CONTROL)
-        self.watched: dict[str, bool] = dict.fromkeys(cfg.vehicles, True)  # until Zenoh is first asked
-        self._next_watch = 0.0
         self.unknown_pubs: dict[str, Publisher[wire.MocapPose]] = {}
         self.tracked: dict[str, bool] = {}
         self._logged: dict[str, float] = {}
@@ -179,17 +176,8 @@ class Ingest:
             self._logged[vehicle] = now
             self.svc.log.info("%s: tracking %s", vehicle, "regained" if ok else "lost")
 
-    def _watch(self) -> None:
-        """Ask Zenoh (at most every :data:`WATCH_PERIOD`) which vehicles' ``mocap`` keys have subscribers."""
-        now = time.monotonic()
-        if now >= self._next_watch:
-            self._next_watch = now + WATCH_PERIOD
-            for vehicle, pub in self.pubs.items():
-                self.watched[vehicle] = pub.matching
-
     def handle(self, frame: TimedFrame) -> int:
         """Publish one frame (and the watched vehicles' poses); return how many poses went out."""
-        self._watch()
         if frame.models != self._models:
             self._routes.clear()
             self._models = frame.models
@@ -205,7 +193,6 @@ class Ingest:
             mts = 0.0
         out = unknown = unwatched = 0
         bodies: list[wire.MocapBody] = []
-        watched = self.watched
         for body in frame.bodies:
             route = routes.get(body.id)
             if route is None:
@@ -224,9 +211,9 @@ class Ingest:
             p, q, err = body_numbers(body, ok)
             if vehicle:
                 bodies.append(wire.MocapBody(vehicle, body.id, p, q, ok, route.name, err))
-            if not vehicle or watched[vehicle]:
+            if not vehicle or route.pub.matching:
                 pose = wire.MocapPose(t, fn, body.id, p, q, ok, route.name, err, lat, mts, tsrc, tp)
-                route.pub.put_raw(pose.encode())
+                route.pub.put(pose)
             else:
                 unwatched += 1
             out += 1

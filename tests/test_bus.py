@@ -126,3 +126,18 @@ def test_service_presence_and_stats(bus_factory: Callable[[], Bus]) -> None:
         stop.set()
         t.join(5)
     wait_for(lambda: watcher.alive("arena/sys/alive/**") == [], what="token gone")
+
+
+def test_matching_follows_subscribers_across_sessions(bus_factory: Callable[[], Bus]) -> None:
+    a, b = bus_factory(), bus_factory()
+    pub = a.stream_publisher(keys.pose("d1"), wire.Pose)
+    assert pub.matching is False  # nobody yet (and from now on Zenoh tells the publisher)
+    sub = b.subscribe(keys.pose("d1"), capacity=10, ring=True)
+    wait_for(lambda: pub.matching, what="the other session's subscriber")
+    sub.close()
+    wait_for(lambda: not pub.matching, what="the subscriber gone")
+    local = a.subscribe("arena/*/pose", capacity=10, ring=True)
+    wait_for(lambda: pub.matching, what="a subscriber of the same session, by a wildcard")
+    local.close()
+    pub.close()
+    assert pub.matching is False  # closed: nothing matches, nothing raises

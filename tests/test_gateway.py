@@ -475,3 +475,20 @@ def test_without_require_setup_the_autopilot_decides(
         assert not rig.aps["d1"].armed
     finally:
         rig.close()
+
+
+def test_state_and_telemetry_rates_come_from_the_vehicle_unless_the_options_say(
+    arena_config: Callable[..., ArenaConfig],
+) -> None:
+    cfg = arena_config()
+    d1 = cfg.vehicles["d1"].replace(state_rate=20.0, telemetry_rate=2.0)
+    cfg = cfg.replace(vehicles={"d1": d1})
+    for options, rates in (
+        (None, (20.0, 2.0)),
+        (GatewayOptions(state_rate=5.0, telemetry_rate=0.0), (5.0, 0.0)),
+    ):
+        gw = Gateway(cfg, "d1", None, options=options)
+        try:
+            assert (gw.state_rate, gw.telemetry_rate) == rates
+        finally:
+            gw.close()

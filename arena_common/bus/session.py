@@ -306,6 +306,8 @@ class Publisher(Generic[P]):
         self.key = key
         self.ptype = ptype
         self.sent = 0
+        self._matching: bool | None = None  # None until first asked (see :attr:`matching`)
+        self._listener: Any = None
         self._enc = zenoh.Encoding(ptype.encoding())
         self._pub = bus.session.declare_publisher(
             key,
@@ -322,13 +324,25 @@ class Publisher(Generic[P]):
 
     @property
     def matching(self) -> bool:
-        """Whether any subscriber (here or on any computer of the bus) takes this key now."""
-        try:
-            # Typed as a bool by zenoh's stubs; a MatchingStatus at run time.
-            status: Any = self._pub.matching_status
-            return bool(status.matching)
-        except Exception:  # undeclared with its session
-            return False
+        """Whether any subscriber (here or on any computer of the bus) takes this key now.
+
+        From the first question on, Zenoh tells this publisher when the answer changes (a matching
+        listener), so asking is an attribute read: fit for a per-sample path.
+        """
+        if self._matching is None:
+            try:
+                # On Zenoh's own thread (no Python thread of its own): it only stores a flag.
+                handler: Any = zenoh.handlers.Callback(self._on_matching, indirect=False)
+                self._listener = self._pub.declare_matching_listener(handler)
+                # Typed as a bool by zenoh's stubs; a MatchingStatus at run time.
+                status: Any = self._pub.matching_status
+                self._matching = bool(status.matching)
+            except Exception:  # undeclared with its session
+                self._matching = False
+        return self._matching
+
+    def _on_matching(self, status: Any) -> None:
+        self._matching = bool(status.matching)
 
     def put_raw(self, data: bytes) -> None:
         """Publish bytes as they are (replay, tests of bad input)."""
@@ -337,9 +351,12 @@ class Publisher(Generic[P]):
 
     def close(self) -> None:
         try:
+            if self._listener is not None:
+                self._listener.undeclare()
             self._pub.undeclare()
         except Exception:
             pass
+        self._matching = False  # after the listener: nothing sets it again
 
 
 class Bus:

@@ -84,7 +84,6 @@ __all__ = ["Gateway", "GatewayOptions"]
 MAV_TYPE_GCS = 6
 MAV_AUTOPILOT_INVALID = 8
 MSG_ESTIMATOR_STATUS = 230
-WATCH_PERIOD = 0.5  # s between asking Zenoh whether anyone subscribes to the state
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,9 +92,11 @@ class GatewayOptions:
 
     source_system: int = 245  # our MAVLink system id (255 is QGroundControl's)
     source_component: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
-    state_rate: float = 50.0  # Hz, arena/<drone>/state
+    # Hz, arena/<drone>/state; None: the vehicle's ``state_rate`` in the config
+    state_rate: float | None = None
     unwatched_rate: float = 10.0  # Hz of the supervisor's checks while nobody subscribes to the state
-    telemetry_rate: float = 10.0  # Hz per message type on arena/<drone>/telemetry/<MSG>; 0 = none
+    # Hz per message type on arena/<drone>/telemetry/<MSG> (0: none); None: the vehicle's ``telemetry_rate``
+    telemetry_rate: float | None = None
     stream_rate: float = 20.0  # Hz, offboard setpoints repeated while their lease runs
     link_timeout: float = 3.0  # s without HEARTBEAT = link lost
     ack_timeout: float = 0.8  # s per COMMAND_LONG attempt
@@ -139,6 +140,8 @@ class Gateway:
         self.name = v.name
         self.bus = bus
         self.options = o = options or GatewayOptions()
+        self.state_rate = v.state_rate if o.state_rate is None else o.state_rate
+        self.telemetry_rate = v.telemetry_rate if o.telemetry_rate is None else o.telemetry_rate
         self.stats = stats or Stats()
         self.log = log or logging.getLogger(f"arena.gateway.{v.name}")
         key = vehicle_key(cfg, v.name)  # SigningError (a ConfigError) for a bad key file
@@ -204,7 +207,7 @@ class Gateway:
             vision_stale=o.vision_stale,
             clock_problem=self.clock_problem if clock is not None else None,
         )
-        self.telemetry = TelemetryPublisher(bus, v.name, o.telemetry_rate, exclude=(MSG["TIMESYNC"],))
+        self.telemetry = TelemetryPublisher(bus, v.name, self.telemetry_rate, exclude=(MSG["TIMESYNC"],))
         gcs_url = o.gcs if o.gcs is not None else v.gcs
         self.gcs = GcsForwarder(gcs_url, self.link, allow_manual=o.allow_gcs_manual) if gcs_url else None
         self.state.on_mode_change.append(self._mode_changed)
@@ -229,7 +232,6 @@ class Gateway:
             self._handlers[MSG["GPS_GLOBAL_ORIGIN"]] = self.origin.on_gps_global_origin
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._state_watched = True  # until Zenoh is asked (by the supervisor)
         self._state_pub = (
             bus.stream_publisher(keys.state(v.name), wire.State, Lane.REPORT) if bus is not None else None
         )
@@ -303,17 +305,14 @@ class Gateway:
     # -- supervisor ----------------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         """The supervisor loop, in the caller's thread, until ``stop`` is set."""
-        period = 1.0 / self.options.state_rate
+        period = 1.0 / self.state_rate
         unwatched = max(period, 1.0 / self.options.unwatched_rate)
         now = time.monotonic()
-        next_state, next_second, next_watch = now, now, now
+        next_state, next_second = now, now
         while not stop.is_set() and not self._stop.is_set():
             now = time.monotonic()
-            if now >= next_watch and self._state_pub is not None:
-                next_watch = now + WATCH_PERIOD  # whether anyone subscribes, asked of Zenoh
-                self._state_watched = self._state_pub.matching
             if now >= next_state:
-                next_state = max(next_state + (period if self._state_watched else unwatched), now)
+                next_state = max(next_state + (period if self._state_watched() else unwatched), now)
                 self.publish_state(now)
             if now >= next_second:
                 next_second = max(next_second + 1.0, now)
@@ -584,9 +583,13 @@ class Gateway:
             fs=tuple(flags),
             tp=t,
         )
-        if self._state_pub is not None and self._state_watched:  # nobody listening: nothing to send
+        if self._state_pub is not None and self._state_pub.matching:  # nobody listening: nothing to send
             self._safe(self._state_pub.put, msg)
         return msg
+
+    def _state_watched(self) -> bool:
+        """Whether the state is read (always, without a bus: it is built for its caller)."""
+        return self._state_pub is None or self._state_pub.matching
 
     def _safe(self, fn: Any, *args: Any) -> None:
         try:
