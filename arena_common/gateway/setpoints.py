@@ -63,7 +63,7 @@ Vec3 = tuple[float, float, float]
 MAX_YAW = 1000.0  # rad: a larger yaw is a mistake, not a heading (it would not even fit MAVLink's float32)
 MAX_YAW_RATE = 2.0 * math.pi  # rad/s
 MAX_ACCEL = 5.0  # m/s², norm of an acceleration feed-forward: a trajectory's, not an aerobatic one
-ATTITUDE_LOOKAHEAD = 0.5  # s: an attitude stream stops where the vehicle's velocity takes it out this soon
+ATTITUDE_LOOKAHEAD = 0.75  # s: an attitude stream stops where the vehicle's velocity takes it out this soon
 MAX_TILT = math.radians(35.0)  # rad, of an attitude setpoint from level: PX4's default MPC_TILTMAX_AIR
 
 
