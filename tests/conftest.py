@@ -265,3 +265,18 @@ def arena_config(tmp_path: Path, router_endpoint: str) -> Callable[..., ArenaCon
         return config_mod.load(write_config(tmp_path, router_endpoint, n_vehicles, extra, **sim))
 
     return make
+
+
+def open_lab(tmp_path: Path) -> Path:
+    """``deploy/lab.example.toml`` as an open lab of peers: no ``[security]`` (``insecure = true``), plain
+    TCP, a downsampler per vehicle on its companion computer — the topology the locked-down recipe avoids."""
+    import re as _re
+
+    text = (REPO / "deploy" / "lab.example.toml").read_text()
+    text = _re.sub(r"\n\[security\]\n(?:[^\[\n][^\n]*\n)*", "\n[security]\ninsecure = true\n\n", text)
+    text = text.replace('mode = "client"', 'mode = "peer"').replace('"tls/', '"tcp/')
+    text = text.replace('router_listen = ["tcp/192.168.1.20:7447"]', 'router_listen = ["tcp/0.0.0.0:7447"]')
+    text = text.replace('decimate = "transform"', 'decimate = "downsampler"')
+    path = tmp_path / "open-lab.toml"
+    path.write_text(text)
+    return path

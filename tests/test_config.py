@@ -122,7 +122,7 @@ def test_px4_sitl_accepts_the_matching_link_and_id_and_boot_params(tmp_path: Pat
         "px4_instance = 3",
         'px4_instance = 3\nmavlink = "udpin:0.0.0.0:14543"\nsystem_id = 4\n'
         "px4_params = { EKF2_EVP_NOISE = 0.05, EKF2_EV_CTRL = 15 }",
-    )
+    ) + "[security]\ninsecure = true\n"  # 0.0.0.0: PX4 SITL's port on every interface, unsigned
     v = config.load(write(tmp_path, text)).vehicle("d1")
     assert v.mavlink == "udpin:0.0.0.0:14543" and v.system_id == 4
     assert v.px4_params == {"EKF2_EVP_NOISE": 0.05, "EKF2_EV_CTRL": 15}
@@ -224,10 +224,12 @@ def test_same_port_on_different_hosts_is_fine(tmp_path: Path) -> None:
 [vehicles.c1]
 autopilot = "px4"
 mavlink = "udpin:0.0.0.0:14540"
+mavlink_peer = "192.168.1.41:14550"
 system_id = 11
 [vehicles.c2]
 autopilot = "px4"
 mavlink = "udpin:0.0.0.0:14540"
+mavlink_peer = "192.168.1.42:14550"
 system_id = 12
 [hosts.cc1]
 vehicles = ["c1"]

@@ -45,6 +45,8 @@ name = "netns"
 server = "127.0.0.1"
 interface = "127.0.0.1"
 multicast = false
+[security]
+insecure = true  # plain peers on the namespaces' network: the insecure topology, on purpose
 [zenoh]
 mode = "peer"
 connect = ["tcp/{ground}:7447"]

@@ -53,9 +53,9 @@ system_id = 2
 """
 
 
-def lab(tmp_path: Path, endpoint: str) -> ArenaConfig:
+def lab(tmp_path: Path, endpoint: str, extra: str = "") -> ArenaConfig:
     path = tmp_path / "lab.toml"
-    path.write_text(LAB.format(ep=endpoint))
+    path.write_text(LAB.format(ep=endpoint) + extra)
     return config_mod.load(path)
 
 
@@ -66,23 +66,54 @@ def test_owners_and_rules(tmp_path: Path) -> None:
     assert table["arena/c1/pose"] == {"ground"} and table["arena/c1/truth"] == set()
     assert table["arena/sys/frames"] == table["arena/c1/mocap"] == {"ground"}  # the mocap host's
     acl = access_control(cfg, SecuritySpec(enabled=True, users_file="u", command_hosts=("laptop",)))
-    assert acl["default_permission"] == "allow"
+    assert acl["default_permission"] == "deny"
+    assert all(r["permission"] == "allow" for r in acl["rules"])
     rules = {r["id"]: r for r in acl["rules"]}
-    policy = {p["rules"][0]: p["subjects"] for p in acl["policies"]}
-    assert rules["publish:arena/c1/state"]["messages"] == ["put", "delete"]
-    assert policy["publish:arena/c1/state"] == ["user:ground", "user:cc2", "user:laptop"]
-    assert rules["serve:arena/c1/cmd"]["messages"] == ["declare_queryable", "reply"]
-    assert policy["commands:query"] == ["user:ground", "user:cc1", "user:cc2"]
-    assert policy["presence:cc1"] == ["user:ground", "user:cc2", "user:laptop"]
+    allowed: dict[str, list[tuple[str, str, str]]] = {}
+    for p in acl["policies"]:
+        (subject,) = p["subjects"]
+        allowed[subject] = [
+            (f, m, k)
+            for rid in p["rules"]
+            for f in rules[rid]["flows"]
+            for m in rules[rid]["messages"]
+            for k in rules[rid]["key_exprs"]
+        ]
+    assert set(allowed) == {"user:ground", "user:cc1", "user:cc2", "user:laptop"}
+    assert ("ingress", "put", "arena/c1/state") in allowed["user:cc1"]
+    assert ("ingress", "put", "arena/c1/state") not in allowed["user:cc2"]
+    assert ("ingress", "declare_queryable", "arena/c1/cmd") in allowed["user:cc1"]
+    assert ("ingress", "declare_queryable", "arena/c1/cmd") not in allowed["user:ground"]
+    assert ("ingress", "query", "arena/*/cmd") in allowed["user:laptop"]
+    assert not [a for a in allowed["user:cc1"] if a[:2] == ("ingress", "query") and "cmd" in a[2]]
+    assert ("ingress", "liveliness_token", "arena/sys/alive/cc1/**") in allowed["user:cc1"]
+    assert ("ingress", "put", "arena/sys/frames") in allowed["user:ground"]
+    assert ("ingress", "declare_queryable", "arena/sys/time") in allowed["user:ground"]
+    assert ("egress", "put", "arena/**") in allowed["user:laptop"]  # every host reads
+    # An observer reads, nothing else; an identity nobody names matches no subject: the default, deny.
+    acl = access_control(cfg, SecuritySpec(enabled=True, users_file="u", observers=("visitor",)))
+    (policy,) = [p for p in acl["policies"] if p["subjects"] == ["user:visitor"]]
+    observed = [rules_of for rules_of in acl["rules"] if rules_of["id"] in policy["rules"]]
+    assert {m for r in observed for m in r["messages"]} <= {
+        "put", "delete", "reply", "liveliness_token", "declare_subscriber", "declare_queryable",
+        "declare_liveliness_subscriber", "liveliness_query",
+    }  # fmt: skip
+    assert all(r["flows"] == ["egress"] or "put" not in r["messages"] for r in observed)
     with pytest.raises(SecurityError, match="needs an identity"):
         access_control(cfg, SecuritySpec(enabled=True))
     with pytest.raises(SecurityError, match=r"command_hosts: 'nobody' is not a host"):
         access_control(cfg, SecuritySpec(enabled=True, users_file="u", command_hosts=("nobody",)))
+    with pytest.raises(SecurityError, match=r"observers: 'cc1' is a host"):
+        access_control(cfg, SecuritySpec(enabled=True, users_file="u", observers=("cc1",)))
     assert zenoh_json({"a/b": 1, "a/c": [2], "d": True}) == {"a": {"b": 1, "c": [2]}, "d": True}
 
 
 def test_tls_is_required_off_the_machine(tmp_path: Path) -> None:
-    cfg = lab(tmp_path, "tcp/192.0.2.1:7447")
+    with pytest.raises(
+        config_mod.ConfigError, match=r"zenoh.router_listen: expected loopback endpoints only"
+    ):
+        lab(tmp_path, "tcp/192.0.2.1:7447")  # no [security]: nothing beyond loopback, unless insecure
+    cfg = lab(tmp_path, "tcp/192.0.2.1:7447", "[security]\ninsecure = true\n")
     with pytest.raises(
         SecurityError, match=r"zenoh.router_listen: 'tcp/192.0.2.1:7447' leaves this computer"
     ):

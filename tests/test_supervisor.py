@@ -36,7 +36,7 @@ from arena_common.runtime.supervisor import (
     plan,
     sim_world_plan,
 )
-from tests.conftest import PYTHON, REPO, Proc, free_port, wait_for, write_config
+from tests.conftest import PYTHON, REPO, Proc, free_port, open_lab, wait_for, write_config
 
 runner = CliRunner()
 
@@ -162,7 +162,11 @@ def test_plan_from_the_config(tmp_path: Path) -> None:
     assert gw[:3] == ("/py", "-m", "services.mavlink_gateway") and gw[gw.index("--vehicle") + 1] == "d2"
     assert specs[names.index("mocap")].argv[2] == "services.mocap_ingest"
 
-    lab = config_mod.load(REPO / "deploy/lab.example.toml")
+    # The shipped lab recipe is locked down: every session a client of the router, nothing listens.
+    secured = config_mod.load(REPO / "deploy/lab.example.toml")
+    assert [s.name for s in plan(secured, "cc1")] == ["gateway.c1"]
+    assert not [s for h in secured.hosts for s in plan(secured, h) if "--listen" in s.argv]
+    lab = config_mod.load(open_lab(tmp_path))
     cc1 = plan(lab, "cc1")
     assert [s.name for s in cc1] == ["downsampler.c1", "gateway.c1"]
     # Peers of a computer with an address listen there, so that other computers' peers reach them.

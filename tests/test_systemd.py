@@ -22,7 +22,7 @@ from arena_common.cli._deploy import (
 )
 from arena_common.core import config as config_mod
 from arena_common.core.errors import ConfigError
-from tests.conftest import REPO
+from tests.conftest import REPO, open_lab
 
 runner = CliRunner()
 LAB = REPO / "deploy/lab.example.toml"
@@ -57,7 +57,7 @@ def test_every_template_exists_and_is_hardened() -> None:
 
 
 def test_ground_host_units(tmp_path: Path) -> None:
-    cfg = config_mod.load(LAB)
+    cfg = config_mod.load(open_lab(tmp_path))
     units = render_systemd(cfg, "ground", python=sys.executable, workdir=tmp_path, user="pilot")
     assert set(units.files) == {
         f"{UNITS}/arena-router.service",
@@ -99,12 +99,34 @@ def test_ground_host_units(tmp_path: Path) -> None:
         "arena-gateway@c3.service",
     ]
     env = units.files["etc/arena/arena.env"]
-    assert f"ARENA_CONFIG={LAB.resolve()}\n" in env and "ARENA_HOST=ground\n" in env
+    assert f"ARENA_CONFIG={(tmp_path / 'open-lab.toml').resolve()}\n" in env and "ARENA_HOST=ground\n" in env
     assert units.enable[-1] == "arena.target" and "arena-gateway@c3.service" in units.enable
 
 
-def test_companion_host_units_and_errors(tmp_path: Path) -> None:
+def test_units_of_the_locked_down_lab(tmp_path: Path) -> None:
+    """The shipped recipe: every service a client of the router (no listener), the transform decimating."""
     cfg = config_mod.load(LAB)
+    cc1 = render_systemd(cfg, "cc1", workdir=tmp_path)
+    assert sorted(cc1.files) == sorted(
+        [f"{UNITS}/arena-gateway@.service", f"{UNITS}/arena.target", "etc/arena/arena.env"]
+    )
+    assert (
+        "--vehicle %i --config ${ARENA_CONFIG} --host ${ARENA_HOST}\n"
+        in cc1.files[f"{UNITS}/arena-gateway@.service"]
+    )
+    ground = render_systemd(cfg, "ground", workdir=tmp_path).files
+    starts = [
+        line
+        for name, text in ground.items()
+        if name.endswith(".service") and "router" not in name
+        for line in text.splitlines()
+        if line.startswith("ExecStart=")
+    ]
+    assert starts and not [line for line in starts if "--listen" in line or "--mode peer" in line]
+
+
+def test_companion_host_units_and_errors(tmp_path: Path) -> None:
+    cfg = config_mod.load(open_lab(tmp_path))
     units = render_systemd(cfg, "cc1", workdir=tmp_path)
     assert sorted(units.files) == sorted(
         [
@@ -136,7 +158,8 @@ def test_companion_host_units_and_errors(tmp_path: Path) -> None:
 
 
 def test_cli_writes_units_under_prefix(tmp_path: Path) -> None:
-    res = runner.invoke(app, ["deploy", "systemd", str(LAB), "--host", "cc2", "--prefix", str(tmp_path)])
+    lab = str(open_lab(tmp_path))
+    res = runner.invoke(app, ["deploy", "systemd", lab, "--host", "cc2", "--prefix", str(tmp_path)])
     assert res.exit_code == 0, res.output
     assert (tmp_path / UNITS / "arena-gateway@.service").is_file()
     assert "ARENA_HOST=cc2" in (tmp_path / "etc/arena/arena.env").read_text()
@@ -145,7 +168,7 @@ def test_cli_writes_units_under_prefix(tmp_path: Path) -> None:
         in res.output
     )
     assert "sudo systemctl start arena.target" in res.output
-    bad = runner.invoke(app, ["deploy", "systemd", str(LAB), "--host", "nope", "--prefix", str(tmp_path)])
+    bad = runner.invoke(app, ["deploy", "systemd", lab, "--host", "nope", "--prefix", str(tmp_path)])
     assert bad.exit_code == 2 and "known hosts: ground, cc1, cc2" in bad.output
 
 
@@ -162,7 +185,7 @@ def _verify(unit_dir: Path, *units: str) -> subprocess.CompletedProcess[str]:
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed here")
 def test_systemd_analyze_verify(tmp_path: Path) -> None:
     """systemd's own checker accepts every generated unit without a single warning about them."""
-    cfg = config_mod.load(LAB)
+    cfg = config_mod.load(open_lab(tmp_path))
     write_units(render_systemd(cfg, "ground", workdir=tmp_path), tmp_path)
     unit_dir = tmp_path / UNITS
     names = [

@@ -31,6 +31,7 @@ GROUPS = (
     "_rec",
     "_view",
     "_deploy",
+    "_security",
 )
 
 app.callback()(_globals.options)  # --config, --mode, --connect, --listen, --zconfig: declared once

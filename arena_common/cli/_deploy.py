@@ -29,6 +29,7 @@ from arena_common.core.errors import ArenaError, BusError, ConfigError
 from arena_common.runtime.options import (
     HostOpt,
 )
+from arena_common.runtime.ports import taken_ports
 from arena_common.runtime.service import Service, running
 from arena_common.runtime.supervisor import SUPERVISOR_SERVICE, Supervisor, host_options, plan, supervise
 
@@ -248,6 +249,12 @@ def up(
             ready = f"  # then wait for {s.ready_port[0]}:{s.ready_port[1]}" if s.ready_port else ""
             typer.echo(f"{s.name}: {s.command_line()}{ready}")
         return
+    taken = taken_ports(cfg, h.name)
+    if taken:
+        for p in taken:
+            typer.echo(f"error: {cfg.path}: {p} is taken by another program (ss -lntup shows which)", err=True)
+        typer.echo("error: nothing started; free the port(s) or change the config field(s) named", err=True)
+        raise typer.Exit(2)
     stop = threading.Event()
     with ExitStack() as stack:
         svc: Service | None = None

@@ -14,6 +14,7 @@ and ``system_id`` to N+1, and must agree with them when given; ``px4_params`` ad
 
 from __future__ import annotations
 
+import ipaddress
 import re
 import socket
 import tomllib
@@ -126,6 +127,10 @@ class VehicleSpec(Spec, frozen=True):
     name: str
     rigid_body: str | int = ""  # the vehicle's name when empty
     mavlink: str = ""  # a pymavlink connection string; required unless a PX4 SITL instance implies it
+    # udpin links only: the autopilot's "IP:PORT".  The gateway then talks to that address only and drops
+    # (and counts) datagrams from any other; without it, it replies to whoever last sent the vehicle's
+    # frames (on an unsigned link, anyone on the network: docs/safety.md §3.3).
+    mavlink_peer: str = ""
     system_id: Annotated[int, Meta(ge=1, le=250)] = (
         0  # MAV_SYS_ID, never 0; required unless a PX4 SITL instance implies it
     )
@@ -204,6 +209,8 @@ class SecuritySpec(Spec, frozen=True):
     cert: str = ""  # this host's certificate (PEM), common name = host name
     key: str = ""  # this host's private key (PEM)
     mtls: bool = True  # the router asks for client certificates (identity by certificate)
+    observers: tuple[str, ...] = ()  # identities (not hosts) that may read the arena's keys, nothing else
+    insecure: bool = False  # consent to listen beyond loopback without authentication (warned at each start)
 
 
 class PipelineSpec(Spec, frozen=True):
@@ -497,7 +504,112 @@ def _vehicle(path: str, name: str, table: Any) -> VehicleSpec:
         )
     if "system_id" not in table and "system_id" not in fix:
         raise _fail(path, f"{where}.system_id", "an integer in 1..250 (MAV_SYS_ID; never 0)")
+    if v.mavlink_peer:
+        _check_peer(path, where, v, fix.get("mavlink", v.mavlink))
     return v.replace(**fix) if fix else v
+
+
+def _check_peer(path: str, where: str, v: VehicleSpec, mavlink: str) -> None:
+    """``mavlink_peer``: one host's IPv4 address and a port, on a listening UDP link to a real autopilot."""
+    host, _, port = v.mavlink_peer.rpartition(":")
+    try:
+        ip = ipaddress.IPv4Address(host)
+    except ValueError:
+        ip = None
+    if (
+        ip is None
+        or ip.is_unspecified
+        or ip.is_multicast
+        or ip == ipaddress.IPv4Address("255.255.255.255")
+        or not re.fullmatch(r"[0-9]{1,5}", port, re.ASCII)
+        or not 0 < int(port) < 65536
+    ):
+        raise _fail(
+            path,
+            f"{where}.mavlink_peer",
+            "the autopilot's IPv4 address and UDP port, IP:PORT (e.g. 192.168.1.31:14550)",
+            v.mavlink_peer,
+        )
+    if mavlink.partition(":")[0] not in ("udpin", "udp"):
+        raise _fail(
+            path,
+            f"{where}.mavlink_peer",
+            f"no mavlink_peer unless mavlink is udpin:HOST:PORT (got {mavlink!r})",
+            v.mavlink_peer,
+        )
+    if v.autopilot == "sim":
+        raise _fail(
+            path,
+            f"{where}.mavlink_peer",
+            'no mavlink_peer with autopilot = "sim" (the simulated autopilot sends from any port)',
+            v.mavlink_peer,
+        )
+
+
+def is_loopback(address: str) -> bool:
+    """True for ``localhost`` and loopback IP addresses (brackets allowed); False for names and the rest."""
+    address = address.strip("[]")
+    if address == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(address).is_loopback
+    except ValueError:
+        return False
+
+
+def endpoint_host(endpoint: str) -> str:
+    """The host part of a Zenoh endpoint (``tcp/HOST:PORT#…``) or of ``udpin:HOST:PORT``."""
+    rest = endpoint.partition("/")[2] if "/" in endpoint.split(":", 1)[0] else endpoint.partition(":")[2]
+    rest = rest.split("#", 1)[0].split("?", 1)[0]
+    return rest.rpartition(":")[0].strip("[]")
+
+
+_INSECURE = "enable [security] (arena security init) or, knowingly, set security.insecure = true"
+
+
+def _check_exposure(
+    path: str,
+    zenoh: ZenohSpec,
+    hosts: dict[str, HostSpec],
+    vehicles: dict[str, VehicleSpec],
+    *,
+    zenoh_too: bool,
+) -> None:
+    """Nothing listens beyond loopback unauthenticated unless the config says ``insecure``.
+
+    Zenoh endpoints (``zenoh_too``: without ``[security]``) and MAVLink links that listen on the network
+    without signing or a pinned peer (``mavlink_peer``).
+    """
+    for field_name, endpoints in (("router_listen", zenoh.router_listen), ("listen", zenoh.listen)):
+        for e in endpoints:
+            if zenoh_too and not is_loopback(endpoint_host(e)):
+                raise _fail(path, f"zenoh.{field_name}", f"loopback endpoints only: {_INSECURE}", e)
+    for name, h in hosts.items():
+        if (
+            zenoh_too
+            and h.address
+            and not is_loopback(h.address)
+            and zenoh.mode == "peer"
+            and not zenoh.listen
+        ):
+            raise _fail(
+                path,
+                f"hosts.{name}.address",
+                f"no address to listen on without authentication (its peers would): {_INSECURE}",
+                h.address,
+            )
+    for name, v in vehicles.items():
+        scheme = v.mavlink.partition(":")[0]
+        listens = scheme in ("udpin", "tcpin", "udp") and not is_loopback(endpoint_host(v.mavlink))
+        if listens and not v.signing_key_file and not v.mavlink_peer:
+            raise _fail(
+                path,
+                f"vehicles.{name}.mavlink",
+                f"an unsigned MAVLink link listening on loopback only: sign it (vehicles.{name}."
+                f"signing_key_file), pin the autopilot's address (vehicles.{name}.mavlink_peer) or, "
+                "knowingly, set security.insecure = true",
+                v.mavlink,
+            )
 
 
 _SECTIONS = {
@@ -590,6 +702,8 @@ def parse(data: dict[str, Any], path: str = "<config>") -> ArenaConfig:
         hosts[hname] = host
 
     security: SecuritySpec = sections["security"]
+    if not security.insecure:
+        _check_exposure(path, sections["zenoh"], hosts, vehicles, zenoh_too=not security.enabled)
     for cmd_host in security.command_hosts:
         if cmd_host not in hosts:
             raise _fail(

@@ -153,6 +153,7 @@ class Gateway:
             source_component=o.source_component,
             signing=self.signing,
             on_reject=self._rejected,
+            peer=v.mavlink_peer or None,
         )
         self._rejects: collections.Counter[tuple[str, str, int]] = collections.Counter()
         self._rejects_report = 0.0
@@ -400,7 +401,15 @@ class Gateway:
             "mavlink: unchecked frame": link.unchecked,
             "mavlink: undecodable": link.decode_errors,
             "mavlink: cannot pack": link.pack_errors,
+            "mavlink: wrong source": link.wrong_source,
         }
+        if link.wrong_source > self._link_counts.get("mavlink: wrong source", 0):
+            self.events.emit(
+                "link",
+                f"frames from {link.last_wrong_source} dropped: the link is pinned to {self.spec.mavlink_peer}",
+                4,
+                every=10.0,
+            )
         for reason, total in totals.items():
             self.stats.reject(reason, total - self._link_counts.get(reason, 0))
             self._link_counts[reason] = total

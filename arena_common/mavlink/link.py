@@ -10,7 +10,12 @@ mavlink-router does.
 Connection strings are pymavlink's:
 
 - ``udpin:HOST:PORT`` (or ``udp:``) listens; replies go to the address the vehicle's own frames last
-  came from, so another system sharing the port never receives anything from this link;
+  came from, so another system sharing the port never receives anything from this link.  On a signed
+  link only a frame whose signature verified moves that address (one let through unsigned, such as
+  RADIO_STATUS, is data only); on an unsigned one any frame with the vehicle's system id does, so a
+  host that can reach the port can divert the link.  ``peer="IP:PORT"`` (the vehicle's
+  ``mavlink_peer``) pins it: replies go there from the start, and datagrams from any other address are
+  dropped, counted in :attr:`MavlinkLink.wrong_source` and logged (at most every 10 s);
 - ``udpout:HOST:PORT`` sends to that address first;
 - ``tcp:HOST:PORT`` connects, ``tcpin:HOST:PORT`` accepts one client;
 - ``serial:DEVICE[:BAUD]`` (``serial:/dev/ttyTHS1:921600``: a companion computer wired to the
@@ -31,7 +36,9 @@ sign them itself with the same key, or the vehicle drops them.
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import logging
 import os
 import select
 import struct
@@ -47,7 +54,7 @@ from pymavlink.dialects.v20 import all as mavlink2  # common + development + the
 
 from arena_common.mavlink.fastframe import FrameType
 from arena_common.mavlink.signing import LinkSigning
-from arena_common.mavlink.transports import MavlinkLinkError, _Transport, open_transport
+from arena_common.mavlink.transports import MavlinkLinkError, _Transport, check_peer, open_transport
 
 __all__ = [
     "MSG",
@@ -59,10 +66,14 @@ __all__ = [
     "mavlink2",
 ]
 
+log = logging.getLogger("arena.mavlink.link")
+
 MAGIC_V2 = 0xFD
 MAGIC_V1 = 0xFE
 _SIGNED = 0x01
 _MAX_BUFFER = 1 << 16
+_WRONG_SOURCE_EVERY = 10.0  # s between two log lines about datagrams from an address not pinned
+_WRONG_SOURCE_ADDRESSES = 8  # distinct addresses named per log line (a flood may spoof many)
 
 #: Message ids by name, for the messages the gateway handles or filters.
 MSG: dict[str, int] = {
@@ -197,7 +208,8 @@ class MavlinkLink:
     dropped); :meth:`decode` turns a frame into a pymavlink message; :meth:`send` encodes and writes one.
     The link opens lazily and can be re-opened (:meth:`reopen`) after a loss.  With ``signing``, frames
     sent are signed and frames read are verified; ``on_reject(reason, frame)`` hears of each refused one
-    (in the reading thread: keep it short).
+    (in the reading thread: keep it short).  ``peer`` (``"IP:PORT"``, ``udpin:`` links only) pins the
+    autopilot's address: datagrams from elsewhere are dropped and counted in :attr:`wrong_source`.
     """
 
     def __init__(
@@ -209,6 +221,7 @@ class MavlinkLink:
         source_component: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER,
         signing: LinkSigning | None = None,
         on_reject: Callable[[str, Frame], None] | None = None,
+        peer: str | None = None,
     ) -> None:
         if not 1 <= int(system_id) <= 250:
             raise MavlinkLinkError(f"vehicle system id must be within 1..250, got {system_id}")
@@ -216,7 +229,9 @@ class MavlinkLink:
             raise MavlinkLinkError(
                 f"our system id must be within 1..255 and differ from the vehicle's, got {source_system}"
             )
+        check_peer(url, peer)  # a wrong pin fails here, not at each (re-)opening
         self.url = url
+        self.peer = peer
         self.system_id = int(system_id)
         self.mav = mavlink2.MAVLink(None, srcSystem=int(source_system), srcComponent=int(source_component))
         self.mav.robust_parsing = True
@@ -235,6 +250,10 @@ class MavlinkLink:
         self.bad_crc = 0  # frames refused for their CRC (or unknown in a byte stream), over every opening
         self.garbage = 0  # bytes that were no frame, over every opening
         self.unchecked = 0  # frames of the vehicle whose CRC could not be checked (unknown message id)
+        self.wrong_source = 0  # frames dropped for coming from an address other than the pinned peer
+        self.last_wrong_source: Any = None  # the address the last of them came from
+        self._wrong_pending: collections.Counter[str] = collections.Counter()
+        self._wrong_report = 0.0
         self.pack_errors = 0
         self.last_pack_error = ""
         self.frames_out = 0
@@ -247,7 +266,7 @@ class MavlinkLink:
         """Open the connection (no-op when open); :class:`MavlinkLinkError` when it cannot be."""
         with self._lock:
             if self._transport is None:
-                self._transport = open_transport(self.url)
+                self._transport = open_transport(self.url, self.peer)
                 self._splitter = FrameSplitter(stream=self._transport.stream)
                 self.opened += 1
 
@@ -306,27 +325,64 @@ class MavlinkLink:
             frames = splitter.feed(data)
             self.bad_crc += splitter.bad_crc - bad_crc
             self.garbage += splitter.garbage - garbage
+            if frames and not t.source_allowed(addr):
+                self._wrong_source(addr, len(frames))
+                continue
             mine = [f for f in frames if f.sysid == sid]
             self.foreign += len(frames) - len(mine)
-            if signing is not None and mine:
-                mine = [f for f in mine if self._verified(signing, f)]
-            if mine:
-                # Only a frame whose CRC was checked may tell where the vehicle is: a corrupt or forged
-                # datagram of an unknown message id must never divert our output.
-                if any(f.checked for f in mine):
-                    t.accept_source(addr)
-                self.unchecked += sum(1 for f in mine if not f.checked)
-                out.extend(mine)
+            if not mine:
+                continue
+            # Only a frame that proves it is the vehicle's may tell where the vehicle is: on a signed link
+            # one whose signature verified (RADIO_STATUS passes unsigned: anyone can send it), else one
+            # whose CRC was checked (a corrupt datagram of an unknown message id proves nothing).
+            if signing is not None:
+                mine, trusted = self._verified(signing, mine)
+            else:
+                trusted = any(f.checked for f in mine)
+            if trusted:
+                t.accept_source(addr)
+            self.unchecked += sum(1 for f in mine if not f.checked)
+            out.extend(mine)
         self.frames_in += len(out)
         return out
 
-    def _verified(self, signing: LinkSigning, frame: Frame) -> bool:
-        reason = signing.check(frame.raw, frame.msgid, frame.sysid, frame.compid)
-        if reason is None:
-            return True
-        if self.on_reject is not None:
-            self.on_reject(reason, frame)
-        return False
+    def _verified(self, signing: LinkSigning, frames: list[Frame]) -> tuple[list[Frame], bool]:
+        """The frames that pass the signing check, and whether one of them was signed (and CRC-checked)."""
+        kept: list[Frame] = []
+        trusted = False
+        for f in frames:
+            reason, signed = signing.verify(f.raw, f.msgid, f.sysid, f.compid)
+            if reason is None:
+                kept.append(f)
+                trusted = trusted or (signed and f.checked)
+            elif self.on_reject is not None:
+                self.on_reject(reason, f)
+        return kept, trusted
+
+    def _wrong_source(self, addr: Any, n: int) -> None:
+        """``n`` frames came from ``addr``, which is not the pinned peer: count them, log now and then."""
+        self.wrong_source += n
+        self.last_wrong_source = addr
+        name = f"{addr[0]}:{addr[1]}" if isinstance(addr, tuple) and len(addr) >= 2 else str(addr)
+        pending = self._wrong_pending
+        if name in pending or len(pending) < _WRONG_SOURCE_ADDRESSES:
+            pending[name] += n
+        else:
+            pending["other addresses"] += n
+        now = time.monotonic()
+        if now < self._wrong_report:
+            return
+        self._wrong_report = now + _WRONG_SOURCE_EVERY
+        detail = ", ".join(f"{a} ×{k}" for a, k in pending.most_common())
+        pending.clear()
+        log.warning(
+            "%s: dropped frames from %s: not the pinned peer %s of system %d (mavlink_peer): another "
+            "device is sending to this port, or the vehicle's address changed",
+            self.url,
+            detail,
+            self.peer,
+            self.system_id,
+        )
 
     def decode(self, frame: Frame) -> Any:
         """The pymavlink message of a frame, or None when it cannot be decoded."""

@@ -25,7 +25,8 @@ Unsigned frames are dropped except the message ids in ``allow_unsigned``.  The g
 RADIO_STATUS through unsigned (:data:`GATEWAY_UNSIGNED`: telemetry radios inject it and hold no key, as
 the spec suggests); a simulated PX4 lets through what PX4 with ``MAV_SIGN_CFG`` = 2 does
 (:data:`PX4_UNSIGNED`: RADIO_STATUS, ADSB_VEHICLE, COLLISION).  HEARTBEAT is not among them: an unsigned
-heartbeat could fake a live link and a mode.
+heartbeat could fake a live link and a mode.  A frame let through unsigned is data, never proof of who sent
+it (:meth:`LinkSigning.verify` tells the two apart): only a verified one may move a link to a new address.
 """
 
 from __future__ import annotations
@@ -240,7 +241,8 @@ class LinkSigning:
     :meth:`attach` makes the object sign every frame it packs (pymavlink adds the 13 bytes and counts the
     timestamp up); call :meth:`refresh` just before packing (under the link's send lock) to keep the
     timestamp on the wall clock.  :meth:`check` verifies one raw received frame and says why it is
-    refused (``None`` when accepted); :attr:`rejected` counts the reasons.  The object must decode with
+    refused (``None`` when accepted), :meth:`verify` also says whether its signature verified (a frame let
+    through unsigned did not); :attr:`rejected` counts the reasons.  The object must decode with
     its own key unused: :meth:`attach` tells pymavlink to accept everything, :meth:`check` decides.
     """
 
@@ -304,27 +306,33 @@ class LinkSigning:
     def check(self, raw: bytes | bytearray, msgid: int, sysid: int, compid: int) -> str | None:
         """Why the frame ``raw`` must be dropped (``"unsigned"``, ``"bad signature"``, ``"replayed"``,
         ``"stale timestamp"``), or None when it is accepted."""
+        return self.verify(raw, msgid, sysid, compid)[0]
+
+    def verify(self, raw: bytes | bytearray, msgid: int, sysid: int, compid: int) -> tuple[str | None, bool]:
+        """As :meth:`check`, and whether the frame's signature verified: ``(None, True)`` for a frame
+        signed with our key and fresh, ``(None, False)`` for one let through unsigned (``allow_unsigned``:
+        take it as data, never as proof of who sent it), ``(reason, False)`` for one to drop."""
         if len(raw) < 12 or raw[0] != _MAGIC_V2 or not raw[2] & _IFLAG_SIGNED:
-            return self._unsigned(msgid, "unsigned")
+            return self._unsigned(msgid, "unsigned"), False
         if len(raw) < 12 + SIGNATURE_BYTES:
-            return self._unsigned(msgid, "malformed")
+            return self._unsigned(msgid, "malformed"), False
         digest = hashlib.sha256(self.key.secret + bytes(raw[:-6])).digest()[:6]
         if not hmac.compare_digest(digest, bytes(raw[-6:])):
-            return self._unsigned(msgid, "bad signature")
+            return self._unsigned(msgid, "bad signature"), False
         link_id = raw[-13]
         ts = int.from_bytes(raw[-12:-6], "little")
         stream = (link_id, sysid, compid)
         last = self._streams.get(stream)
         if last is not None:
             if ts <= last:
-                return self._unsigned(msgid, "replayed")
+                return self._unsigned(msgid, "replayed"), False
         elif ts + NEW_STREAM_WINDOW < self.timestamp:
-            return self._unsigned(msgid, "stale timestamp")
+            return self._unsigned(msgid, "stale timestamp"), False
         self._streams[stream] = ts
         if ts > self._seen_max:
             self._seen_max = ts
         self.accepted += 1
-        return None
+        return None, True
 
     def _unsigned(self, msgid: int, reason: str) -> str | None:
         if msgid in self.allow_unsigned:

@@ -2,17 +2,31 @@
 
 :func:`open_transport` opens one from a connection string; :class:`~arena_common.mavlink.link.MavlinkLink`
 frames, checks and routes what flows through it.
+
+A listening UDP transport (``udpin:``) sends to the address the link last accepted
+(:meth:`_Transport.accept_source`), unless its peer is *pinned* (``peer="IP:PORT"``,
+:func:`parse_peer`): then it sends there from the start, never anywhere else, and
+:meth:`_Transport.source_allowed` refuses datagrams from every other address.
 """
 
 from __future__ import annotations
 
+import ipaddress
+import re
 import socket
 from abc import ABC, abstractmethod
 from typing import Any
 
 from arena_common.core.errors import ArenaError
 
-__all__ = ["SERIAL_DEFAULT_BAUD", "MavlinkLinkError", "open_transport", "parse_serial"]
+__all__ = [
+    "SERIAL_DEFAULT_BAUD",
+    "MavlinkLinkError",
+    "check_peer",
+    "open_transport",
+    "parse_peer",
+    "parse_serial",
+]
 
 
 class MavlinkLinkError(ArenaError):
@@ -24,6 +38,41 @@ def _host_port(rest: str, url: str) -> tuple[str, int]:
     if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise MavlinkLinkError(f"MAVLink connection {url!r}: expected HOST:PORT after the scheme")
     return host, int(port)
+
+
+_PEER = re.compile(r"([0-9.]+):([0-9]{1,5})", re.ASCII)
+_PINNABLE = ("udpin", "udp")
+
+
+def parse_peer(text: str) -> tuple[str, int]:
+    """The (IPv4 address, port) of a pinned peer ``"IP:PORT"``; :class:`MavlinkLinkError` if it is not one.
+
+    An address, not a host name: a name would be resolved through the very network the pin guards.
+    """
+    m = _PEER.fullmatch(text) if isinstance(text, str) else None
+    try:
+        ip = ipaddress.IPv4Address(m.group(1)) if m is not None else None
+    except ValueError:
+        ip = None
+    if m is None or ip is None or not 0 < int(m.group(2)) < 65536:
+        raise MavlinkLinkError(
+            f"MAVLink peer {text!r}: expected the autopilot's IPv4 address and port, IP:PORT"
+        )
+    if ip.is_unspecified or ip.is_multicast or ip == ipaddress.IPv4Address("255.255.255.255"):
+        raise MavlinkLinkError(f"MAVLink peer {text!r}: {ip} is not the address of one host")
+    return str(ip), int(m.group(2))
+
+
+def check_peer(url: str, peer: str | None) -> tuple[str, int] | None:
+    """The pinned peer of connection ``url`` (None: not pinned); :class:`MavlinkLinkError` when ``peer``
+    is not an address or ``url`` is not a listening UDP link (the only kind whose peer moves)."""
+    if peer is None:
+        return None
+    if url.partition(":")[0] not in _PINNABLE:
+        raise MavlinkLinkError(
+            f"MAVLink connection {url!r}: a peer can be pinned on udpin:HOST:PORT links only"
+        )
+    return parse_peer(peer)
 
 
 class _Transport(ABC):
@@ -51,26 +100,31 @@ class _Transport(ABC):
         return True
 
     def accept_source(self, address: Any) -> None:  # noqa: B027 - optional hook, a no-op by default
-        """The vehicle's own frames came from ``address``."""
+        """The vehicle's own trusted frames came from ``address`` (a listening UDP link replies there)."""
+
+    def source_allowed(self, address: Any) -> bool:
+        """Whether a chunk read from ``address`` may be used at all (False: not the pinned peer)."""
+        return True
 
 
 class _Udp(_Transport):
     stream = False
 
-    def __init__(self, host: str, port: int, listen: bool) -> None:
+    def __init__(self, host: str, port: int, listen: bool, pinned: tuple[str, int] | None = None) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self.sock.setblocking(False)
             if listen:
                 self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                 self.sock.bind((host, port))
-                self.peer: tuple[str, int] | None = None
+                self.peer: tuple[str, int] | None = pinned
             else:
                 self.peer = (socket.gethostbyname(host), port)
         except OSError:
             self.sock.close()
             raise
         self.listen = listen
+        self.pinned = listen and pinned is not None
 
     def fileno(self) -> int | None:
         return self.sock.fileno()
@@ -95,8 +149,11 @@ class _Udp(_Transport):
         return self.peer is not None
 
     def accept_source(self, address: Any) -> None:
-        if self.listen:
+        if self.listen and not self.pinned:
             self.peer = address
+
+    def source_allowed(self, address: Any) -> bool:
+        return not self.pinned or address == self.peer
 
     def close(self) -> None:
         self.sock.close()
@@ -249,14 +306,18 @@ class _Pymavlink(_Transport):
         self.conn.close()
 
 
-def open_transport(url: str) -> _Transport:
-    """Open the raw transport of a pymavlink connection string; :class:`MavlinkLinkError` if impossible."""
+def open_transport(url: str, peer: str | None = None) -> _Transport:
+    """Open the raw transport of a pymavlink connection string; :class:`MavlinkLinkError` if impossible.
+
+    ``peer`` (``"IP:PORT"``, ``udpin:`` only) pins the address a listening UDP link talks to.
+    """
     if not isinstance(url, str) or not url.strip():
         raise MavlinkLinkError(f"MAVLink connection string must be a non-empty string, got {url!r}")
+    pinned = check_peer(url, peer)
     scheme, sep, rest = url.partition(":")
     try:
-        if sep and scheme in ("udpin", "udp"):
-            return _Udp(*_host_port(rest, url), listen=True)
+        if sep and scheme in _PINNABLE:
+            return _Udp(*_host_port(rest, url), listen=True, pinned=pinned)
         if sep and scheme == "udpout":
             return _Udp(*_host_port(rest, url), listen=False)
         if sep and scheme == "tcp":

@@ -162,9 +162,12 @@ def host_options(cfg: ArenaConfig, host: HostSpec, options: BusOptions | None = 
     on loopback (the default) cannot be reached from another computer: so a host with an ``address``
     has its peers listen on ``tcp/<address>:0``, and peers of different computers connect directly
     (learning each other's endpoints by gossip through the router).  An explicit ``--listen`` or
-    ``zenoh.listen`` wins; clients and routers are left alone.
+    ``zenoh.listen`` wins; clients and routers are left alone, and so is every session of a secured
+    arena (a client of the router: :func:`arena_common.bus.security.secured_options`).
     """
     mode = (options.mode if options else None) or cfg.zenoh.mode
+    if cfg.security.enabled:  # every session of a secured arena is a client of its router
+        return options
     if not host.address or mode != "peer" or cfg.zenoh.listen or (options and options.listen):
         return options
     address = f"[{host.address}]" if ":" in host.address else host.address
