@@ -200,3 +200,15 @@ def test_arena_up_refuses_a_taken_port_naming_its_field_before_starting_anything
     assert f"vehicles.d1.mavlink (udp 127.0.0.1:{udp}) is taken" in res.stderr
     assert "starting" not in res.stdout and "nothing started" in res.stderr
     assert taken_ports(loaded, "ground") == []
+
+
+def test_a_host_that_may_not_command_is_told_so_not_timed_out(tmp_path: Path) -> None:
+    from arena_common import Arena, NotPermitted
+    from arena_common.bus.session import open_bus
+
+    cfg = _secured(tmp_path)  # command_hosts = ["ground"]
+    bus = open_bus(None, BusOptions(mode="peer", listen=(f"tcp/127.0.0.1:{free_port()}",)))
+    with Arena(cfg, bus=bus, host="cc1") as arena, pytest.raises(NotPermitted) as err:
+        arena.vehicle("c1").arm()
+    bus.close()
+    assert "host 'cc1' may not command vehicles (security.command_hosts = ['ground'])" in str(err.value)

@@ -75,10 +75,14 @@ class Arena:
         self._own_bus = bus is None
         # A client of the router by default: the router knows every service's presence at once, while a
         # peer learns it link by link; user programs gain nothing from direct links.
-        options = host_bus_options(
-            config, host_name(host), BusOptions(mode=mode or "client", connect=tuple(connect))
-        )
-        self.bus = bus or open_bus(config.zenoh if config else ZenohSpec(), options)
+        self.host = host_name(host)
+        """This computer's host name in the config (``host``, else ``$ARENA_HOST``, else the hostname)."""
+        if bus is None:
+            options = host_bus_options(
+                config, self.host, BusOptions(mode=mode or "client", connect=tuple(connect))
+            )
+            bus = open_bus(config.zenoh if config else ZenohSpec(), options)
+        self.bus = bus
         self._vehicles: dict[str, Vehicle] = {}
         self._channel: Channel[Received[Any]] = Channel(8192, ring=True)
         self._lock = threading.Lock()

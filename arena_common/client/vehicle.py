@@ -50,6 +50,7 @@ from arena_common.core import keys, wire
 from arena_common.core.errors import (
     CommandRejected,
     CommandTimeout,
+    NotPermitted,
     SafetyRefused,
     VehicleNotPresent,
 )
@@ -368,6 +369,15 @@ class Vehicle:
         It returns once the vehicle's attributes show the command's effect (a state the gateway stamped
         after its answer arrived, within a second), so ``mode`` reads the mode just confirmed.
         """
+        sec = self.arena.config.security if self.arena.config is not None else None
+        if sec is not None and sec.enabled and sec.command_hosts and self.arena.host not in sec.command_hosts:
+            raise NotPermitted(
+                f"{self.name}: {op}: host {self.arena.host!r} may not command vehicles "
+                f"(security.command_hosts = {list(sec.command_hosts)}): the router drops its "
+                "commands, setpoints and estops",
+                result="NOT_PERMITTED",
+                drone=self.name,
+            )
         cmd = wire.Command(op=op, args=args, src=self.arena.src, timeout=timeout, t=wire.now_ns())
         res = self.arena.bus.request(keys.cmd(self.name), cmd, timeout)
         if res.ok:

@@ -59,6 +59,10 @@ class SafetyRefused(CommandError):
     """The gateway refused the command or setpoint under the arena's safety rules."""
 
 
+class NotPermitted(CommandError):
+    """On a secured arena, this host is no ``command_hosts`` entry: the router drops its commands."""
+
+
 class VehicleNotPresent(CommandError):
     """No gateway for that vehicle is alive on the bus."""
 
