@@ -28,7 +28,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 from arena_common.bus import pki
-from arena_common.core.config import is_loopback
+from arena_common.core.endpoints import is_loopback
 from arena_common.mavlink.signing import LinkSigning, generate_key_file
 from tests.conftest import wait_for
 from tests.netnslib import Lab, drain, namespaces_usable

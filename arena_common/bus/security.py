@@ -39,7 +39,8 @@ from typing import Any
 from arena_common.bus.pki import secret_mode_problem
 from arena_common.bus.session import BusOptions
 from arena_common.core import keys
-from arena_common.core.config import ArenaConfig, SecuritySpec, endpoint_host, is_loopback
+from arena_common.core.config import ArenaConfig, SecuritySpec
+from arena_common.core.endpoints import endpoint_host, is_loopback
 from arena_common.core.errors import ArenaError
 
 

@@ -27,6 +27,7 @@ import msgspec
 from msgspec import Meta
 
 from arena_common.core import keys
+from arena_common.core.endpoints import endpoint_host, is_loopback, mirror_connection, udp_listen_port
 from arena_common.core.errors import ConfigError, InvalidName
 
 Service = Literal["router", "mocap", "transform", "recorder", "sim"]
@@ -287,22 +288,6 @@ class ArenaConfig(Spec, frozen=True):
         return {v.rigid_body: v.name for v in self.vehicles.values()}
 
 
-def mirror_connection(conn: str) -> str:
-    """The other end of a pymavlink connection string: udpin↔udpout, tcp↔tcpin."""
-    scheme, sep, rest = conn.partition(":")
-    mirror = {"udpin": "udpout", "udpout": "udpin", "udp": "udpout", "tcp": "tcpin", "tcpin": "tcp"}
-    if not sep or scheme not in mirror:
-        raise ConfigError(f"cannot derive the simulated side of MAVLink connection {conn!r}; set sim.mavlink")
-    return f"{mirror[scheme]}:{rest}"
-
-
-def udp_listen_port(conn: str) -> int | None:
-    """The local UDP port a gateway binds for ``udpin:HOST:PORT`` (or ``udp:…``); None for other links."""
-    scheme, _, rest = conn.partition(":")
-    port = rest.rpartition(":")[2]
-    return int(port) if scheme in ("udpin", "udp") and port.isdigit() else None
-
-
 # --------------------------------------------------------------------------------------------------
 # Reading: msgspec checks types, bounds and unknown fields; the rules across fields follow.
 # --------------------------------------------------------------------------------------------------
@@ -544,24 +529,6 @@ def _check_peer(path: str, where: str, v: VehicleSpec, mavlink: str) -> None:
             'no mavlink_peer with autopilot = "sim" (the simulated autopilot sends from any port)',
             v.mavlink_peer,
         )
-
-
-def is_loopback(address: str) -> bool:
-    """True for ``localhost`` and loopback IP addresses (brackets allowed); False for names and the rest."""
-    address = address.strip("[]")
-    if address == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(address).is_loopback
-    except ValueError:
-        return False
-
-
-def endpoint_host(endpoint: str) -> str:
-    """The host part of a Zenoh endpoint (``tcp/HOST:PORT#…``) or of ``udpin:HOST:PORT``."""
-    rest = endpoint.partition("/")[2] if "/" in endpoint.split(":", 1)[0] else endpoint.partition(":")[2]
-    rest = rest.split("#", 1)[0].split("?", 1)[0]
-    return rest.rpartition(":")[0].strip("[]")
 
 
 _INSECURE = "enable [security] (arena security init) or, knowingly, set security.insecure = true"

@@ -11,7 +11,8 @@ import errno
 import socket
 from dataclasses import dataclass
 
-from arena_common.core.config import ArenaConfig, endpoint_host, udp_listen_port
+from arena_common.core.config import ArenaConfig
+from arena_common.core.endpoints import endpoint_host, udp_listen_port
 
 __all__ = ["FixedPort", "fixed_ports", "taken_ports"]
 
