@@ -212,3 +212,9 @@ def test_a_host_that_may_not_command_is_told_so_not_timed_out(tmp_path: Path) ->
         arena.vehicle("c1").arm()
     bus.close()
     assert "host 'cc1' may not command vehicles (security.command_hosts = ['ground'])" in str(err.value)
+
+
+def test_the_live_view_stays_on_loopback_unless_made_public(tmp_path: Path) -> None:
+    res = typed("view", "--address", "0.0.0.0", "--port", "0", cwd=tmp_path)
+    assert res.returncode == 2 and "--address 0.0.0.0: the live view has no login" in res.stderr
+    assert "--public" in res.stderr

@@ -9,6 +9,7 @@ import typer
 
 from arena_common.cli._globals import bus as global_bus
 from arena_common.cli._globals import config as global_config
+from arena_common.core.endpoints import is_loopback
 from arena_common.recording.live import DEFAULT_PORT, LiveView, serve
 from arena_common.runtime.options import (
     HostOpt,
@@ -28,11 +29,34 @@ def view_cmd(
     key_exprs: Annotated[
         list[str] | None, typer.Option("--keys", "-k", help="Keys to show (repeatable; default arena/**).")
     ] = None,
+    public: Annotated[
+        bool,
+        typer.Option(
+            "--public",
+            help="Allow an --address beyond loopback: anyone who reaches the port sees every vehicle.",
+        ),
+    ] = False,
     host: HostOpt = None,
     log_level: LogOpt = "WARNING",
 ) -> None:
-    """Serve the arena live in 3D over the Foxglove WebSocket protocol (open ws://ADDRESS:PORT in Foxglove)."""
+    """Serve the arena live in 3D over the Foxglove WebSocket protocol (open ws://ADDRESS:PORT in Foxglove).
+
+    The Foxglove WebSocket protocol has no login: beyond loopback the view is for anyone on the network,
+    so an address that is not loopback needs ``--public`` (and is announced as such).
+    """
     setup_logging(log_level)
+    if not is_loopback(address) and not public:
+        typer.echo(
+            f"error: --address {address}: the live view has no login, so anyone who reaches the port would "
+            "see every vehicle; add --public to serve it beyond this computer anyway, or reach it through "
+            "an SSH tunnel (ssh -L 8765:127.0.0.1:8765 HOST)",
+            err=True,
+        )
+        raise typer.Exit(2)
+    if public and not is_loopback(address):
+        typer.echo(
+            f"warning: public view on {address}: no login, anyone on the network sees every vehicle", err=True
+        )
     cfg = global_config(required=False)
     yield_cpu(logging.getLogger("arena.viewer"))
 
