@@ -366,7 +366,7 @@ def test_handshake_names_and_frames(
             assert last.arrival - 30_000_000 < last.t < last.arrival - 3_000_000
         else:
             assert last.tsrc == "arrival" and last.t == last.arrival and last.lat == -1
-        if not multicast and version >= "4":
+        if not multicast and Version.parse(version) >= Version(2, 10):  # Motive drops silent unicast clients
             poll_until(client, lambda: server.count(MessageId.KEEPALIVE) >= 1, what="a KEEPALIVE")
         else:
             assert server.count(MessageId.KEEPALIVE) == 0
@@ -468,6 +468,29 @@ def test_server_restart_frame_numbers_going_back(fake_motive: Callable[..., Fake
         assert frames[0].frame_number < 20
         assert frames[-1].tsrc == "echo"
         assert frames[-1].arrival - 30_000_000 < frames[-1].t < frames[-1].arrival - 3_000_000
+
+
+@pytest.mark.parametrize("version", ["2.9", "3.0", "3.1", "4.0", "4.1"])
+def test_unicast_frames_on_the_command_socket_only(
+    fake_motive: Callable[..., FakeMotive], version: str
+) -> None:
+    """Unicast as Motive does it (docs/architecture.md): frames come to the socket that sent CONNECT, so that
+    is the only socket the client opens, even when given a data port (which another program may then bind
+    alone), and it keeps alive from NatNet 2.10 on, whose servers drop silent unicast clients declaring 2.10
+    or later."""
+    server = fake_motive(version, multicast=False)
+    rejects = Rejects()
+    with client_for(server, on_reject=rejects, data_port=server.data_port) as client:
+        poll_until(client, connected(client))
+        assert client.data_address is None
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as alone:
+            alone.bind((LOOP, server.data_port))  # no SO_REUSEADDR: fails if the client holds the port
+        assert len(stream_until(server, client, 3)) == 3
+        if Version.parse(version) >= Version(2, 10):
+            poll_until(client, lambda: server.count(MessageId.KEEPALIVE) >= 1, what="a KEEPALIVE")
+        else:
+            assert server.count(MessageId.KEEPALIVE) == 0
+    assert rejects.items == []
 
 
 def test_natnet_version_change(fake_motive: Callable[..., FakeMotive]) -> None:

@@ -1,16 +1,18 @@
 """The Motive emulator against independent NatNet clients, on real loopback sockets.
 
-* libmotioncapture (PyPI ``motioncapture``, IMRCLab): an older-generation client. It sends an empty CONNECT,
-  reads SERVERINFO and MODELDEF as the next datagrams on its command socket, then listens on the data port
-  SERVERINFO announces (on 0.0.0.0, joined to the group in multicast). It blocks forever when nothing comes,
-  so it runs in a subprocess with a timeout.
+* libmotioncapture (PyPI ``motioncapture``, IMRCLab): it sends an empty CONNECT, reads SERVERINFO and MODELDEF
+  as the next datagrams on its command socket (which it then closes), then listens on the data port
+  SERVERINFO announces (on 0.0.0.0, joined to the group in multicast). In unicast Motive sends frames to the
+  socket that sent CONNECT, not there, so libmotioncapture gets no frame in unicast, from Motive or from the
+  emulator. It blocks forever when nothing comes, so it runs in a subprocess with a timeout.
 * The NatNet SDK's Python client (PyPI ``natnetsdk``, NaturalPoint's PythonClient sample 4.1): a NatNet 4
   client. Its CONNECT is 271 bytes declaring NatNet 4.1; in unicast it reads frames on its command socket
   and sends a KEEPALIVE after each receive. Its threads never end (a blocking data socket), so it runs in a
   subprocess too, ended with ``os._exit``.
 
-Each test has its own free ports. Also: SERVERINFO reaches every new unicast client before any frame; each
-generation's frames go where it reads them (and NatNet 4 clients' frames come from the data port); our
+Each test has its own free ports. Also: SERVERINFO reaches every new unicast client before any frame; in
+unicast, for NatNet 3.0, 3.1, 4.0 and 4.1 alike, frames go to the socket that sent CONNECT, from the data
+port, and never to the data port of the client's address (docs/architecture.md, "NatNet unicast"); our
 SERVERINFO and NatNet 3.0 frames decode in the independent clients like the real Motive 2.1 capture does.
 """
 
@@ -108,20 +110,18 @@ def streaming(
         thread.join(timeout=5.0)
 
 
-def run_child(code: str, *args: object) -> Any:
+def run_child(code: str, *args: object, timeout: float = CHILD_TIMEOUT) -> Any:
     """Run ``code`` in a Python subprocess and return the JSON after its ``RESULT`` line."""
     try:
         run = subprocess.run(
             [sys.executable, "-c", code, *map(str, args)],
             capture_output=True,
             text=True,
-            timeout=CHILD_TIMEOUT,
+            timeout=timeout,
         )
     except subprocess.TimeoutExpired as exc:
         out = exc.stdout.decode(errors="replace") if isinstance(exc.stdout, bytes) else exc.stdout or ""
-        raise AssertionError(
-            f"the client got nothing in {CHILD_TIMEOUT} s; its output: {out[-1000:]}"
-        ) from None
+        raise AssertionError(f"the client got nothing in {timeout} s; its output: {out[-1000:]}") from None
     line = next((x for x in run.stdout.splitlines() if x.startswith("RESULT ")), None)
     assert run.returncode == 0 and line, run.stdout[-2000:] + run.stderr[-2000:]
     return json.loads(line[7:])
@@ -214,22 +214,24 @@ def default_interface_can_join(group: str) -> bool:
 def test_serverinfo_precedes_every_frame_to_a_new_unicast_client() -> None:
     """300 new clients while frames stream at 2 kHz: the first datagram each receives is SERVERINFO.
 
-    Two in three subscribe with CONNECT (NatNet 4.1), every third with a KEEPALIVE from an unknown address (a
-    client that outlived a server restart). Each then receives frames, and leaves with DISCONNECT.
+    A third subscribe with the real NatNet 3.0 library's CONNECT (captured), a third with a NatNet 4.1 one,
+    a third with a KEEPALIVE from an unknown address (a client that outlived a server restart). Each then
+    receives frames on that same socket, and leaves with DISCONNECT.
     """
     server = make_server(multicast=False)
     connects = 300
     firsts: list[int] = []
+    hellos = (
+        (V3_DIR / "connect_packet_v3.bin").read_bytes(),
+        natnet.encode_connect(natnet_version=Version(4, 1)),
+        natnet.encode_keepalive(),
+    )
     with server, streaming(server, period=0.0005):
         for i in range(connects):
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
                 sock.bind(("127.0.0.1", 0))
                 sock.settimeout(5.0)
-                hello = (
-                    natnet.encode_keepalive()
-                    if i % 3 == 2
-                    else natnet.encode_connect(natnet_version=Version(4, 1))
-                )
+                hello = hellos[i % 3]
                 sock.sendto(hello, server.command_address)
                 firsts.append(natnet.split_packet(sock.recv(65535))[0])
                 while natnet.split_packet(sock.recv(65535))[0] != MessageId.FRAMEOFDATA:
@@ -242,47 +244,92 @@ def test_serverinfo_precedes_every_frame_to_a_new_unicast_client() -> None:
     assert server.counters.connects == connects and server.clients == []
 
 
-def test_unicast_routes_each_generation_where_it_reads_frames() -> None:
-    """A NatNet 4 client gets frames on its command socket, from the data port; an older client on this same
-    computer on the data port (0.0.0.0, shared like libmotioncapture does), which no server socket takes from
-    it; a NatNet 4 client whose port closes is forgotten."""
-    server = make_server(multicast=False, version="3.1")
-    new = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    old = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+# What the clients that subscribe send: the real NatNet 3.0 library's CONNECT (captured from Motive 2.1's
+# traffic), the same declaring NatNet 3.1, libmotioncapture's empty one, and a NatNet 4.1 one.
+HELLOS = {
+    "natnetlib-3.0": (V3_DIR / "connect_packet_v3.bin").read_bytes(),
+    "natnetlib-3.1": natnet.encode_connect(natnet_version=Version(3, 1)),
+    "empty": natnet.encode_packet(MessageId.CONNECT, b""),
+    "natnet-4.1": natnet.encode_connect(natnet_version=Version(4, 1)),
+}
+
+
+@pytest.mark.parametrize("version", ["3.0", "3.1", "4.0", "4.1"])
+def test_unicast_frames_go_to_the_socket_that_sent_connect(version: str) -> None:
+    """Motive (2.x: NatNet 3.0, 3.1; 3.x: NatNet 4.0, 4.1) sends unicast frames to the address the CONNECT came
+    from, from its data port, and nowhere else (docs/architecture.md): every client, whatever its CONNECT, gets them on
+    the socket that sent it, and a listener on the data port of the clients' address (where libmotioncapture
+    waits) gets none. The frames decode as the served version.
+    """
+    server = make_server(multicast=False, version=version)
+    clients = {name: socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for name in HELLOS}
     listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    got: dict[str, list[tuple[bytes, tuple[str, int]]]] = {name: [] for name in HELLOS}
     try:
-        for sock in (new, old):
+        for sock in clients.values():
             sock.bind(("127.0.0.1", 0))
             sock.settimeout(5.0)
+        addresses = [sock.getsockname() for sock in clients.values()]
         listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         listener.bind(("0.0.0.0", server.data_port))
-        listener.settimeout(5.0)
         with server, streaming(server):
-            new.sendto(natnet.encode_connect(natnet_version=Version(4, 1)), server.command_address)
-            old.sendto(natnet.encode_connect(), server.command_address)  # NatNet 3.0, as the 3.x library
-            replies = [natnet.split_packet(s.recv(65535))[0] for s in (new, old)]
-            frame, source = new.recvfrom(65535)
-            assert natnet.split_packet(frame)[0] == MessageId.FRAMEOFDATA
-            assert source == ("127.0.0.1", server.data_port), "NatNet 4 frames come from the data port"
-            assert natnet.split_packet(listener.recv(65535))[0] == MessageId.FRAMEOFDATA
-            routes = {c.address: (c.natnet4, c.frames_to) for c in server.clients}
-            assert routes == {
-                new.getsockname(): (True, new.getsockname()),
-                old.getsockname(): (False, ("127.0.0.1", server.data_port)),
-            }
-            # The older client's command socket gets replies only (libmotioncapture reads MODELDEF there).
-            old.sendto(natnet.encode_request_model_defs(), server.command_address)
-            assert natnet.split_packet(old.recv(65535))[0] == MessageId.MODELDEF
-            old.settimeout(0.2)
+            for name, sock in clients.items():
+                sock.sendto(HELLOS[name], server.command_address)
+            for name, sock in clients.items():
+                while len(got[name]) < 5:  # a timeout here: no frame where the client reads them
+                    data, source = sock.recvfrom(65535)
+                    got[name].append((data, source))
+            routes = {c.address: c.frames_to for c in server.clients}
+            listener.settimeout(0.3)  # 60 more frames meanwhile
             with pytest.raises(TimeoutError):
-                old.recv(65535)
-            new.close()  # no DISCONNECT: the kernel reports the closed port, the server forgets the client
-            wait_for(lambda: server.counters.gone == 1, 5.0, what="the closed client forgotten")
-            assert [c.address for c in server.clients] == [old.getsockname()]
+                listener.recvfrom(65535)
     finally:
-        for sock in (new, old, listener):
+        for sock in (*clients.values(), listener):
             sock.close()
-    assert replies == [MessageId.SERVERINFO, MessageId.SERVERINFO]
+    assert routes == {address: address for address in addresses}
+    served = Version.parse(version)
+    for name, datagrams in got.items():
+        (first, _), *rest = datagrams
+        assert natnet.split_packet(first)[0] == MessageId.SERVERINFO, name
+        assert natnet.decode_server_info(natnet.split_packet(first)[1]).natnet_version == served
+        for data, source in rest:
+            message_id, payload = natnet.split_packet(data)
+            assert message_id == MessageId.FRAMEOFDATA, name
+            assert source == ("127.0.0.1", server.data_port), "frames come from the data port"
+            bodies = natnet.decode_frame(payload, served).rigid_bodies
+            assert [(b.id, b.pos, b.quat_xyzw) for b in bodies] == [
+                (b.id, b.pos, b.quat_xyzw) for b in BODIES
+            ]
+
+
+def test_unicast_replies_on_the_command_socket_and_closed_clients_forgotten() -> None:
+    """Replies (SERVERINFO, MODELDEF) come from the command port, frames from the data port, both to the
+    socket that sent CONNECT; a client whose port closes without DISCONNECT is forgotten."""
+    server = make_server(multicast=False, version="3.1")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for s in (sock, other):
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(5.0)
+        with server, streaming(server):
+            for s in (sock, other):
+                s.sendto(HELLOS["natnetlib-3.0"], server.command_address)
+                assert natnet.split_packet(s.recv(65535))[0] == MessageId.SERVERINFO
+            sock.sendto(natnet.encode_request_model_defs(), server.command_address)
+            sources: dict[int, tuple[str, int]] = {}
+            while not {MessageId.MODELDEF, MessageId.FRAMEOFDATA} <= sources.keys():
+                data, source = sock.recvfrom(65535)
+                sources[natnet.split_packet(data)[0]] = source
+            assert sources[MessageId.MODELDEF] == server.command_address
+            assert sources[MessageId.FRAMEOFDATA] == ("127.0.0.1", server.data_port)
+            sock.close()  # no DISCONNECT: the kernel reports the closed port, the server forgets the client
+            wait_for(lambda: server.counters.gone == 1, 5.0, what="the closed client forgotten")
+            assert [c.address for c in server.clients] == [other.getsockname()]
+            assert natnet.split_packet(other.recv(65535))[0] == MessageId.FRAMEOFDATA
+    finally:
+        sock.close()
+        other.close()
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -291,18 +338,27 @@ def test_unicast_routes_each_generation_where_it_reads_frames() -> None:
 
 
 @pytest.mark.parametrize("version", ["3.0", "4.1"])
-@pytest.mark.parametrize("mode", ["multicast", "unicast"])
-def test_libmotioncapture_receives_the_bodies(mode: str, version: str) -> None:
+def test_libmotioncapture_receives_the_bodies(version: str) -> None:
     pytest.importorskip("motioncapture")
-    server = make_server(multicast=mode == "multicast", version=version)
+    server = make_server(multicast=True, version=version)
     with server, streaming(server):
         seen = run_child(MOTIONCAPTURE, "127.0.0.1", server.command_port, 40)
         clients = server.clients
     assert seen.keys() == EXPECT_BY_NAME.keys()
     assert all(close(seen[name], EXPECT_BY_NAME[name]) for name in seen)
-    assert [(c.natnet4, c.natnet_version) for c in clients] == [(False, None)], "an empty CONNECT"
-    if mode == "unicast":
-        assert clients[0].frames_to == (clients[0].address[0], server.data_port)
+    assert [(c.app_name, c.natnet_version) for c in clients] == [("", None)], "an empty CONNECT"
+
+
+@pytest.mark.parametrize("version", ["3.0", "4.1"])
+def test_libmotioncapture_gets_no_frame_in_unicast(version: str) -> None:
+    """As from Motive: libmotioncapture connects (SERVERINFO, MODELDEF on its command socket), but the frames
+    go to that command socket, which it has closed, and it waits on the data port, where none come."""
+    pytest.importorskip("motioncapture")
+    server = make_server(multicast=False, version=version)
+    with server, streaming(server), pytest.raises(AssertionError, match="got nothing"):
+        run_child(MOTIONCAPTURE, "127.0.0.1", server.command_port, 1, timeout=3.0)
+    requests = server.counters
+    assert (requests.connects, requests.gone) == (1, 1), "frames sent to its closed command socket"
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -348,7 +404,7 @@ def test_natnetsdk_receives_the_bodies(mode: str, version: str) -> None:
     for bodies in known:
         assert bodies.keys() == EXPECT_BY_ID.keys()
         assert all(close(bodies[i], EXPECT_BY_ID[i]) for i in bodies)
-    assert [(c.natnet4, c.natnet_version) for c in clients] == [(True, Version(4, 1))]
+    assert [c.natnet_version for c in clients] == [Version(4, 1)]
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -437,12 +493,13 @@ def without_labeled_markers(printed: str) -> str:
 
 @pytest.mark.parametrize("source", ["capture", "emulator"])
 def test_capture_and_emulator_decode_alike_in_libmotioncapture(source: str) -> None:
-    """The emulator serving the capture's Motive (its SERVERINFO fields and MODELDEF) in unicast, with the
-    captured frame as recorded or as the emulator builds it: libmotioncapture reads RaceQuad the same."""
+    """The emulator serving the capture's Motive (its SERVERINFO fields and MODELDEF, multicast like the
+    capture), with the captured frame as recorded or as the emulator builds it: libmotioncapture reads
+    RaceQuad the same."""
     pytest.importorskip("motioncapture")
     real = (V3_DIR / "mocapframe_packet_v3.bin").read_bytes()
     datagram = real if source == "capture" else emulated_frame(real)
-    server = capture_server(multicast=False)
+    server = capture_server(multicast=True)
     with server, streaming(server, lambda _: datagram):
         seen = run_child(MOTIONCAPTURE, "127.0.0.1", server.command_port, 20)
     position, (qx, qy, qz, qw) = CAPTURE_BODY

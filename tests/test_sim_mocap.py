@@ -57,8 +57,8 @@ Y_UP_Q = (0.0, -S, 0.0, S)
 
 
 class Client:
-    """A NatNet 4 SDK-like command-socket client on 127.0.0.1: its CONNECT declares NatNet 4.1, so unicast
-    frames arrive on this same socket (older clients get them on the data port: tests/test_natnet_clients.py).
+    """A NatNet 4 SDK-like command-socket client on 127.0.0.1: its CONNECT declares NatNet 4.1; unicast frames
+    arrive on this same socket, as from Motive for every client (tests/test_natnet_clients.py).
     """
 
     def __init__(self, command_port: int) -> None:

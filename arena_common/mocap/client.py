@@ -9,9 +9,11 @@ does, without threads of its own: call :meth:`NatNetClient.poll` in a loop and i
   arrive first are counted (``before_serverinfo``) and dropped. REQUEST_MODELDEF then fetches the rigid
   bodies' names (frames carry only ids), again whenever a frame says the models changed.
 - **Transport.** Multicast: a data socket bound to the group (``''`` where the system refuses that), with
-  ``SO_REUSEADDR`` so several clients coexist, joined on the configured interface address. Unicast: the
-  server sends frames to the socket that sent CONNECT (the command socket), so that socket is always read;
-  4.x unicast clients send KEEPALIVE every second.
+  ``SO_REUSEADDR`` so several clients coexist, joined on the configured interface address. Unicast: Motive
+  (NatNet 3.x and 4.x alike) sends each client's frames to the socket that sent CONNECT, from its data
+  port, and nowhere else (docs/architecture.md, "NatNet unicast"), so the command socket is the only one; a
+  KEEPALIVE goes every second to servers from NatNet 2.10 on, which drop a unicast client declaring 2.10 or
+  later (this one declares 4.1) after 5–10 s without one.
 - **Time.** ECHO round trips (NTP-like, :class:`EchoClock`) map the server's tick clock onto the local wall
   clock, so each frame's camera mid-exposure becomes its measurement time ``t`` (``tsrc="echo"``); until
   the clock is known, ``t`` is the arrival time minus the system latency the frame reports
@@ -55,6 +57,8 @@ log = logging.getLogger("arena.natnet")
 DEFAULT_GROUP = natnet.MULTICAST_GROUP
 #: The NatNet version announced in CONNECT (the newest this client decodes).
 CLIENT_NATNET_VERSION = Version(4, 1)
+#: The first NatNet version whose servers take KEEPALIVE (and drop silent unicast clients without it).
+KEEPALIVE_SINCE = Version(2, 10)
 _HEADER = struct.Struct("<HH")
 _RECV_SIZE = 65536  # larger than any IPv4 UDP payload
 _RCVBUF = 1 << 20  # absorb bursts of frames while the process is descheduled
@@ -234,7 +238,7 @@ class NatNetClient:
         self.clock: EchoClock | None = None
         self.frames = 0
         self.last_frame_number: int | None = None
-        self.data_address: tuple[str, int] | None = None  # where frames are expected (multicast or unicast)
+        self.data_address: tuple[str, int] | None = None  # the group and port listened on (multicast only)
 
         self._cmd: socket.socket | None = None
         self._data: socket.socket | None = None
@@ -280,7 +284,7 @@ class NatNetClient:
 
     @property
     def command_address(self) -> tuple[str, int] | None:
-        """The local address of the command socket (where unicast frames arrive)."""
+        """The local address of the command socket (where replies, and unicast frames, arrive)."""
         if self._cmd is None:
             return None
         host, port = self._cmd.getsockname()[:2]
@@ -305,17 +309,19 @@ class NatNetClient:
             ) from None
         self._cmd = cmd
         self._socks = [cmd]
-        if self.group is not None or self.data_port is not None or self.last_info is not None:
+        if self.multicast and (
+            self.group is not None or self.data_port is not None or self.last_info is not None
+        ):
             self._open_data_socket(self.last_info)
 
     def _open_data_socket(self, info: ServerInfo | None) -> None:
-        """(Re)open the data socket for the group and port configured, else those the server announced."""
+        """(Re)open the multicast data socket for the group and port configured, else those announced."""
         group = self.group or (info.multicast_group if info and info.multicast_group else DEFAULT_GROUP)
         port = self.data_port or (info.data_port if info and info.data_port else natnet.DATA_PORT)
-        if self.multicast and not ipaddress.IPv4Address(group).is_multicast:
+        if not ipaddress.IPv4Address(group).is_multicast:
             group = DEFAULT_GROUP
         if self._data is not None:
-            if self.data_address == ((group if self.multicast else self.interface), port):
+            if self.data_address == (group, port):
                 return
             self._socks.remove(self._data)
             self._data.close()
@@ -325,24 +331,15 @@ class NatNetClient:
             sock.setblocking(False)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, _RCVBUF)
-            if self.multicast:
-                try:
-                    sock.bind((group, port))  # only this group's datagrams (Linux, macOS)
-                except OSError:
-                    sock.bind(("", port))  # systems that refuse to bind a group address
-                iface = socket.inet_aton(self.interface or "0.0.0.0")
-                sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(group) + iface)
-                self.data_address = (group, port)
-            else:
-                # Servers send unicast frames to the socket that sent CONNECT; some send them to the data
-                # port instead: listen there too when possible.
-                sock.bind((self.interface, port))
-                self.data_address = (self.interface, port)
+            try:
+                sock.bind((group, port))  # only this group's datagrams (Linux, macOS)
+            except OSError:
+                sock.bind(("", port))  # systems that refuse to bind a group address
+            iface = socket.inet_aton(self.interface or "0.0.0.0")
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(group) + iface)
+            self.data_address = (group, port)
         except OSError as exc:
             sock.close()
-            if not self.multicast:
-                self._reject("socket_error", f"unicast data port {port} not available: {exc.strerror or exc}")
-                return
             raise MocapError(
                 f"cannot join multicast group {group}:{port} on interface {self.interface or '0.0.0.0'}: "
                 f"{exc.strerror or exc} (the interface must be this computer's address on the mocap network)"
@@ -548,7 +545,7 @@ class NatNetClient:
         self._decode_failures = 0
         self._last_frame = now
         self._backoff = self.retry
-        if self._data is None or (self.group is None and self.data_port is None):
+        if self.multicast and (self._data is None or (self.group is None and self.data_port is None)):
             try:
                 self._open_data_socket(info)
             except MocapError as exc:
@@ -579,7 +576,9 @@ class NatNetClient:
         self._next_modeldef = now
         self._next_echo = now if self.clock is not None else math.inf
         self._echo_burst = 4
-        self._next_keepalive = now if (not self.multicast and info.natnet_version.major >= 4) else math.inf
+        self._next_keepalive = (
+            now if (not self.multicast and info.natnet_version >= KEEPALIVE_SINCE) else math.inf
+        )
 
     def _on_model_defs(self, payload: bytes) -> None:
         if self._version is None:

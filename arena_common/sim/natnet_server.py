@@ -14,12 +14,13 @@ NatNet version the codec knows (the emulator offers 3.0, 3.1, 4.0 and 4.1). Its 
   (pcap/pcapng, or decoded frames as JSON lines) to replay at its original timing.
 * :mod:`arena_common.sim.natnet_sessions` — the unicast clients.
 
-Unicast serves each generation of client as Motive does: NatNet 4 SDK clients get their frames on the socket
-that sent CONNECT, from the data port; older clients (libmotioncapture, NatNet SDK 3.x) on the data port of
-their address. SERVERINFO always reaches a new client before its first frame. A client is forgotten on
-DISCONNECT, after ``client_timeout`` seconds of silence if it ever sent a KEEPALIVE (clients that never do —
-NatNet 3.x, multicast clients — are kept), or when its port is closed. A KEEPALIVE from an address that is
-not subscribed subscribes it again (after a SERVERINFO), so clients survive a server restart.
+Unicast as Motive does it, for NatNet 3.0, 3.1, 4.0 and 4.1 alike: every client's frames go to the address
+its CONNECT came from (the socket that sent it), from the data port, and nowhere else — not to the data port
+of the client's address (:mod:`arena_common.sim.natnet_sessions`; the evidence is in docs/architecture.md).
+SERVERINFO always reaches a new client before its first frame. A client is forgotten on DISCONNECT, after
+``client_timeout`` seconds of silence if it ever sent a KEEPALIVE (clients that never do — multicast clients,
+libmotioncapture — are kept), or when its port is closed. A KEEPALIVE from an address that is not subscribed
+subscribes it again (after a SERVERINFO), so clients survive a server restart.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ from arena_common.sim.natnet_scene import (
     SceneCounters,
     SimScene,
 )
-from arena_common.sim.natnet_sessions import ClientInfo, Subscriptions, is_natnet4_client
+from arena_common.sim.natnet_sessions import ClientInfo, Subscriptions
 
 __all__ = [
     "ANGLE_NOISE_PER_M",
@@ -408,7 +409,7 @@ class NatNetServer:
             info = natnet.encode_server_info(self.server_info())
             if message_id == MessageId.DISCOVERY:
                 return info
-            self._subscribe(addr, natnet.decode_connect(payload), len(payload), info, now)
+            self._subscribe(addr, natnet.decode_connect(payload), info, now)
             return None
         if message_id == MessageId.REQUEST_MODELDEF:
             self.counters.requests += 1
@@ -440,18 +441,16 @@ class NatNetServer:
         self.counters.ignored += 1
         return None
 
-    def _subscribe(
-        self, addr: tuple[str, int], hello: ConnectRequest, size: int, info: bytes, now: float
-    ) -> None:
+    def _subscribe(self, addr: tuple[str, int], hello: ConnectRequest, info: bytes, now: float) -> None:
         """Answer a CONNECT with SERVERINFO, then send the client frames (never the other way round)."""
-        natnet4 = is_natnet4_client(hello, size)
-        if self._sessions.connect(addr, hello, natnet4, now, lambda: self._reply(info, addr)):
+        if self._sessions.connect(addr, hello, now, lambda: self._reply(info, addr)):
             self.counters.connects += 1
             log.info(
-                "client %s:%d connected (%s, %s)",
+                "client %s:%d connected (%s, NatNet %s)%s",
                 *addr,
                 hello.app_name or "unnamed",
-                "NatNet 4 SDK: frames to its command socket" if natnet4 else "frames to its data port",
+                hello.natnet_version or "not said",
+                "" if self.multicast else ": frames to this address, from the data port",
             )
 
     def _answer(self, text: str, addr: tuple[str, int]) -> bytes:

@@ -1,23 +1,18 @@
-"""The unicast clients of the Motive emulator: who is subscribed, where its frames go, from which socket.
+"""The unicast clients of the Motive emulator: who is subscribed, and the sockets their frames leave from.
 
-Motive serves two generations of NatNet client in unicast, and each reads its frames somewhere else:
+**Where Motive sends unicast frames** (docs/architecture.md, "NatNet unicast", has the evidence): to the
+address the client's CONNECT came from — its IP *and* port, so the socket that sent CONNECT — and nowhere
+else, from the socket Motive binds to its data port. NatNet 3.0 and 3.1 (Motive 2.x) and NatNet 4.0 and 4.1
+(Motive 3.x) do the same, whatever the client: the unicast server of OptiTrack's NatNet library (3.0, 3.1
+and 4.1) keeps each client's CONNECT source address and sends every frame there from its data-port socket,
+and every unicast client OptiTrack ships (the NatNet library 3.x and 4.x, PacketClient, PythonClient) reads
+frames on the socket that sent CONNECT, the library taking a datagram for a streamed frame only when it comes
+from the server's data port. Nothing is sent to the data port of the client's address: a client that listens
+there (libmotioncapture's unicast mode) gets no frame from Motive, nor from the emulator.
 
-* **NatNet 4 SDK clients** — the NatNet SDK 4.x library, its PacketClient and PythonClient samples (PyPI
-  ``natnetsdk``). Their "data socket" is bound to port 0 and never read: the command thread reads the frames
-  on the socket that sent CONNECT and sends a KEEPALIVE after each receive. So their frames go to the CONNECT
-  source address. The SDK library takes a unicast datagram for a frame only when it comes from the server's
-  data port (the 4.1 Linux library connects, but receives no frame at all, when frames come from the command
-  port), so those frames leave from a socket bound to the data port — one per client, connected to it, so
-  that it never takes datagrams meant for another process listening on that port on the same computer.
-* **Older clients** — NatNet SDK ≤ 3.x and the depacketizers written after it (libmotioncapture, PyPI
-  ``motioncapture``). They send an empty or 264-byte CONNECT and never a KEEPALIVE, read SERVERINFO and
-  MODELDEF as the next datagrams on their command socket, then listen for frames on the data port SERVERINFO
-  announces. Their frames go to the client's address at the server's data port, never to the command socket
-  (where libmotioncapture would take a frame for the MODELDEF it waits for).
-
-How Motive tells them apart is not documented; the emulator goes by what only 4.x clients send: a CONNECT
-with the connection options after the 264-byte sender block (:data:`NATNET4_CONNECT_SIZE` bytes or more), or
-one declaring NatNet 4 or later, or a KEEPALIVE.
+So each client's frames leave from a socket bound to the data port and connected to the client (one per
+client, so that it never takes datagrams meant for another process listening on that port on this computer;
+where the data port cannot be bound, from an ephemeral port, with a warning).
 
 **SERVERINFO first.** A client gets no frame before the SERVERINFO that answers its CONNECT: the answer is
 sent before the client joins the frame targets, under the lock every frame send holds, so no frame can come
@@ -37,22 +32,11 @@ from dataclasses import dataclass, field, replace
 
 from arena_common.mocap.natnet import ConnectRequest, Version
 
-__all__ = ["NATNET4_CONNECT_SIZE", "ClientInfo", "SendResult", "Subscriptions", "is_natnet4_client"]
+__all__ = ["ClientInfo", "SendResult", "Subscriptions"]
 
 log = logging.getLogger("arena.natnet_server")
 
-#: CONNECT payload size from which a client is a NatNet 4 SDK client: the 264-byte sender block (name, app
-#: and NatNet versions) followed by the 5-byte connection options (subscribed-data-only flag, bitstream
-#: version) that the 4.x SDK added. The PythonClient sample sends 271 bytes, PacketClient 273, the SDK 269.
-NATNET4_CONNECT_SIZE = 269
-
 Address = tuple[str, int]
-
-
-def is_natnet4_client(hello: ConnectRequest, payload_size: int) -> bool:
-    """Whether a CONNECT (decoded ``hello``, ``payload_size`` bytes) comes from a NatNet 4 SDK client."""
-    declared = hello.natnet_version
-    return payload_size >= NATNET4_CONNECT_SIZE or (declared is not None and declared.major >= 4)
 
 
 @dataclass(slots=True)
@@ -65,8 +49,7 @@ class ClientInfo:
     connected: float = field(default_factory=time.monotonic)
     last_seen: float = field(default_factory=time.monotonic)
     keeps_alive: bool = False
-    natnet4: bool = False  # a NatNet 4 SDK client: frames go to ``address``, else to its data port
-    frames_to: Address = ("", 0)  # where its unicast frames go
+    frames_to: Address = ("", 0)  # where its unicast frames go: ``address``, as Motive does
 
 
 @dataclass(slots=True)
@@ -91,14 +74,14 @@ class Subscriptions:
         self.client_timeout = client_timeout
         self._lock = threading.Lock()  # the clients, their sockets, and every unicast send
         self._clients: dict[Address, ClientInfo] = {}
-        self._socks: dict[Address, socket.socket] = {}  # NatNet 4 clients: bound to the data port, connected
-        self._legacy: socket.socket | None = None  # older clients' frames (any source port will do)
+        self._socks: dict[Address, socket.socket] = {}  # per client: bound to the data port, connected
+        self._spare: socket.socket | None = None  # for a client whose own socket could not be made
         self._warned_port = False
 
     # -- life cycle --------------------------------------------------------------------------------
     def open(self) -> None:
-        """Open the socket older clients' frames leave from (unicast only)."""
-        if not self.unicast or self._legacy is not None:
+        """Open the spare socket frames leave from when a client's own cannot be made (unicast only)."""
+        if not self.unicast or self._spare is not None:
             return
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
@@ -106,16 +89,16 @@ class Subscriptions:
         except OSError:
             sock.close()
             raise
-        self._legacy = sock
+        self._spare = sock
 
     def close(self) -> None:
         """Close every socket and forget the clients."""
         with self._lock:
-            for sock in (*self._socks.values(), self._legacy):
+            for sock in (*self._socks.values(), self._spare):
                 if sock is not None:
                     sock.close()
             self._socks.clear()
-            self._legacy = None
+            self._spare = None
             self._clients.clear()
 
     # -- state -------------------------------------------------------------------------------------
@@ -136,16 +119,15 @@ class Subscriptions:
 
     # -- subscription ------------------------------------------------------------------------------
     def connect(
-        self, address: Address, hello: ConnectRequest, natnet4: bool, now: float, answer: Callable[[], None]
+        self, address: Address, hello: ConnectRequest, now: float, answer: Callable[[], None]
     ) -> bool:
         """Subscribe ``address`` after ``answer()`` sent it SERVERINFO; ``True`` if it was not subscribed."""
-        client = ClientInfo(address, hello.app_name, hello.natnet_version, now, now, natnet4=natnet4)
+        client = ClientInfo(address, hello.app_name, hello.natnet_version, now, now)
         with self._lock:
             old = self._clients.pop(address, None)  # no frame to it until its SERVERINFO is out
             answer()
             if old is not None:
                 client.keeps_alive = old.keeps_alive
-                client.natnet4 = client.natnet4 or old.keeps_alive
             self._add(client)
         return old is None
 
@@ -155,12 +137,9 @@ class Subscriptions:
             client = self._clients.get(address)
             if client is not None:
                 client.keeps_alive = True
-                if not client.natnet4:  # only NatNet 4 SDK clients keep alive: frames go to them directly
-                    client.natnet4 = True
-                    self._add(client)
                 return False
             answer()
-            self._add(ClientInfo(address, connected=now, last_seen=now, keeps_alive=True, natnet4=True))
+            self._add(ClientInfo(address, connected=now, last_seen=now, keeps_alive=True))
         return True
 
     def disconnect(self, address: Address) -> bool:
@@ -183,19 +162,16 @@ class Subscriptions:
         return silent
 
     def _add(self, client: ClientInfo) -> None:
-        """Record ``client`` and route its frames (lock held)."""
+        """Record ``client`` and open the socket its frames leave from (lock held)."""
         address = client.address
         old = self._socks.pop(address, None)
         if old is not None:
             old.close()
-        if client.natnet4:
-            client.frames_to = address
-            if self.unicast:
-                sock = self._data_port_socket(address)
-                if sock is not None:
-                    self._socks[address] = sock
-        else:
-            client.frames_to = (address[0], self.data_port)
+        client.frames_to = address
+        if self.unicast:
+            sock = self._data_port_socket(address)
+            if sock is not None:
+                self._socks[address] = sock
         self._clients[address] = client
 
     def _remove(self, address: Address) -> bool:
@@ -205,7 +181,7 @@ class Subscriptions:
         return self._clients.pop(address, None) is not None
 
     def _data_port_socket(self, address: Address) -> socket.socket | None:
-        """A socket bound to the data port and connected to ``address`` (``None``: use the shared one).
+        """A socket bound to the data port and connected to ``address`` (``None``: use the spare one).
 
         ``SO_REUSEADDR`` lets it share the port with other such sockets and with clients listening on it on
         this computer; being connected, it receives nothing from anyone else, so it takes no datagram meant
@@ -220,8 +196,8 @@ class Subscriptions:
                 if not self._warned_port:
                     self._warned_port = True
                     log.warning(
-                        "cannot send unicast frames from data port %s:%d (%s): NatNet 4 SDK clients may "
-                        "ignore frames from another port",
+                        "cannot send unicast frames from data port %s:%d (%s): NatNet SDK clients take "
+                        "frames from another port for replies, not for the stream",
                         self.host,
                         self.data_port,
                         exc.strerror or exc,
@@ -236,10 +212,10 @@ class Subscriptions:
 
     # -- frames ------------------------------------------------------------------------------------
     def send(self, datagram: bytes) -> SendResult:
-        """Send ``datagram`` to every subscribed client (unicast).
+        """Send ``datagram`` to every subscribed client (unicast), to the address its CONNECT came from.
 
-        A NatNet 4 client whose port is closed (the kernel reports the ICMP port-unreachable on its connected
-        socket) is forgotten: its address is in ``gone``.
+        A client whose port is closed (the kernel reports the ICMP port-unreachable on its connected socket)
+        is forgotten: its address is in ``gone``.
         """
         result = SendResult()
         with self._lock:
@@ -248,8 +224,8 @@ class Subscriptions:
                 try:
                     if sock is not None:
                         sock.send(datagram)
-                    elif self._legacy is not None:
-                        self._legacy.sendto(datagram, client.frames_to)
+                    elif self._spare is not None:
+                        self._spare.sendto(datagram, client.frames_to)
                     else:
                         continue
                     result.sent += 1
