@@ -568,6 +568,15 @@ def _check_exposure(
     for name, v in vehicles.items():
         scheme = v.mavlink.partition(":")[0]
         listens = scheme in ("udpin", "tcpin", "udp") and not is_loopback(endpoint_host(v.mavlink))
+        gcs_scheme = v.gcs.partition(":")[0]
+        if gcs_scheme in ("udpin", "tcpin", "udp") and not is_loopback(endpoint_host(v.gcs)):
+            raise _fail(
+                path,
+                f"vehicles.{name}.gcs",
+                "a ground-station link on loopback only (it forwards whatever it receives to the vehicle, "
+                "unauthenticated): use udpout:GCS_IP:PORT, or, knowingly, set security.insecure = true",
+                v.gcs,
+            )
         if listens and not v.signing_key_file and not v.mavlink_peer:
             raise _fail(
                 path,
