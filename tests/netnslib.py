@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import uuid
+from pathlib import Path
 
 from tests.conftest import REPO
 
@@ -81,12 +82,18 @@ class Lab:
         return found
 
     def spawn(
-        self, host: str, *argv: str, stdin: bool = False, env: dict[str, str] | None = None
+        self,
+        host: str,
+        *argv: str,
+        stdin: bool = False,
+        env: dict[str, str] | None = None,
+        cwd: Path | None = None,
     ) -> tuple[subprocess.Popen[str], queue.Queue[str]]:
-        """Start ``argv`` in ``host``'s namespace; its output lines arrive in the returned queue."""
+        """Start ``argv`` in ``host``'s namespace (in ``cwd``, default the repository); its output lines
+        arrive in the returned queue."""
         proc = subprocess.Popen(
             ["ip", "netns", "exec", self.ns[host], *argv],
-            cwd=REPO,
+            cwd=cwd or REPO,
             stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,

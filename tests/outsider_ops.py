@@ -1,9 +1,9 @@
-"""The pilots' program of ``tests/test_outsider.py``: flies d1 from the commanding host and watches.
+"""The pilots' program of ``tests/test_outsider.py``: flies one vehicle from the commanding host and watches.
 
-``python -m tests.outsider_ops CONFIG`` waits for every vehicle's fused vision, takes d1 off to 1 m,
-prints ``{"airborne": ...}``, then a JSON report every 0.2 s: each vehicle's state as the pilots see it
-and every spoofed reading that reached them (a state whose system id is not the vehicle's, an estop).
-A line ``land`` on stdin lands d1 and ends the program.
+``python -m tests.outsider_ops CONFIG HOST VEHICLE`` waits for every vehicle's fused vision, takes VEHICLE
+off to 1 m, prints ``{"airborne": ...}``, then a JSON report every 0.2 s: each vehicle's state as the
+pilots see it, the gateways' rejected counters and every spoofed reading that reached them (a state
+whose system id is not the vehicle's, an estop).  A line ``land`` on stdin lands it and ends the program.
 """
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ def report(**kw: Any) -> None:
 
 
 def main() -> None:
-    with Arena(sys.argv[1], host="ops", name="outsider-ops") as arena:
+    config, host, flown = sys.argv[1:4]
+    with Arena(config, host=host, name="outsider-ops") as arena:
         cfg = arena.config
         assert cfg is not None
         names = list(cfg.vehicles)
@@ -31,15 +32,15 @@ def main() -> None:
         spoofed: list[str] = []
         states = {n: arena.bus.subscribe(keys.state(n), capacity=10000, ring=False) for n in names}
         estops = arena.bus.subscribe(keys.ESTOP, capacity=100, ring=False)
-        stats = arena.bus.subscribe("arena/sys/stats/*/gateway.*", capacity=1000, ring=False)
+        stats = arena.bus.subscribe("arena/sys/stats/**", capacity=1000, ring=False)
         rejected: dict[str, dict[str, int]] = {}
         vehicles = {n: arena.vehicle(n) for n in names}
         for v in vehicles.values():
             v.wait_until(lambda x: x.state is not None and x.state.vis_fused, timeout=90, what="fused vision")
-        d1 = vehicles["d1"]
-        d1.arm()
-        d1.takeoff(1.0, timeout=60)
-        report(airborne=d1.position)
+        pilot = vehicles[flown]
+        pilot.arm()
+        pilot.takeoff(1.0, timeout=60)
+        report(airborne=pilot.position)
         landing = threading.Event()
 
         def commands() -> None:
@@ -57,7 +58,7 @@ def main() -> None:
             for item in estops.channel.drain():
                 spoofed.append(f"estop: {item.payload}")
             for item in stats.channel.drain():
-                if item.payload is not None:
+                if item.payload is not None and item.payload.service.startswith("gateway."):
                     rejected[item.payload.service] = dict(item.payload.rejected)
             snap = {}
             for n, v in vehicles.items():
@@ -68,7 +69,7 @@ def main() -> None:
                 }  # fmt: skip
             report(t=time.time(), spoofed=spoofed[-20:], n_spoofed=len(spoofed), rejected=rejected, **snap)
             time.sleep(0.2)
-        d1.land(timeout=60)
+        pilot.land(timeout=60)
         report(landed=True)
 
 

@@ -1,17 +1,19 @@
-"""The outsider on the lab network: every port every arena process listens on, tried without the right identity.
+"""The README's lab steps on network namespaces, then the outsider on every port of that locked-down lab.
 
-Network namespaces this test creates (10.215.9.0/24): ``ground`` (router, Motive emulator, simulated
-autopilots, mocap ingest, frame transform), ``cc1`` and ``cc2`` (a companion computer each, with its
-vehicle's gateway), ``ops`` (the only ``command_hosts`` entry: the pilots' program flies d1) and
-``outsider``.  The arena is the documented locked-down lab (``deploy/lab.example.toml``'s ``[security]``),
-its credentials made by ``arena security init`` as a lab administrator types it, in both kinds: mutual
-TLS with the lab's CA, and user/password.  Every computer runs ``arena up lab.toml --host NAME``.
+Namespaces this test creates (10.215.9.0/24) stand for the lab's computers of ``deploy/lab.example.toml``:
+``ground`` (router, mocap ingest, frame transform, recorder; here also the Motive emulator and the
+simulated autopilots, standing where the cameras and vehicles would be), ``cc1`` and ``cc2`` (a companion
+computer each, with its vehicle's gateway) and ``outsider``.  The config is the shipped example with only
+what a namespace lab needs substituted (addresses, simulated autopilots on signed UDP links instead of
+serial lines, a temporary recordings folder), in both credential kinds: mutual TLS as shipped, and
+user/password.  Every step is typed as the README gives it: ``arena security init``, ``arena security
+check``, ``arena config check``, ``arena up lab.toml --host NAME`` on each computer, ``arena status``.
 
-The outsider lists every listening socket of the arena's computers (``ss``) and tries each: Zenoh with no
-credentials (plain and TLS), a certificate of another CA or a wrong password, a lab identity that is no
-host of the config (``visitor``), a non-commanding host's identity (``laptop``); unsigned, wrongly signed
-and replayed MAVLink to every UDP port.  Nothing may arm, move, spoof a reading or divert a link, and d1
-keeps flying.
+The pilots' program flies c1 from the ground computer (the only ``command_hosts`` entry).  The outsider
+lists every listening socket of the arena's computers (``ss``) and tries each: Zenoh with no credentials
+(plain and TLS), a certificate of another CA or a wrong password, a lab identity that is no host of the
+config (``visitor``), a non-commanding host's identity (a researcher's ``laptop``, added to the config); unsigned, wrongly signed and replayed
+MAVLink to every UDP port.  Nothing may arm, move, spoof a reading or divert a link, and c1 keeps flying.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 from arena_common.bus import pki
 from arena_common.core.endpoints import is_loopback
 from arena_common.mavlink.signing import LinkSigning, generate_key_file
-from tests.conftest import wait_for
+from tests.conftest import REPO, wait_for
 from tests.netnslib import Lab, drain, namespaces_usable
 
 pytestmark = [pytest.mark.netns, pytest.mark.system]
@@ -40,51 +42,63 @@ ADDRESS = {
     "ground": f"{SUBNET}.1",
     "cc1": f"{SUBNET}.11",
     "cc2": f"{SUBNET}.12",
-    "ops": f"{SUBNET}.21",
     "outsider": f"{SUBNET}.66",
 }
 ARENA = [str(Path(sys.executable).with_name("arena"))]
-CONFIG = """
-[arena]
-name = "outsider"
-[mocap]
-server = "127.0.0.1"
-interface = "127.0.0.1"
-multicast = false
-[zenoh]
-mode = "client"
-connect = ["{scheme}/{ground}:7447"]
-router_listen = ["{scheme}/{ground}:7447"]
-lease_ms = 2000
-[security]
-enabled = true
-command_hosts = ["ops"]
-{credentials}
-[pipeline]
-decimate = "transform"
-[hosts.ground]
-address = "{ground}"
-services = ["router", "sim", "mocap", "transform"]
-[hosts.cc1]
-address = "{cc1}"
-vehicles = ["d1"]
-[hosts.cc2]
-address = "{cc2}"
-vehicles = ["d2"]
-[hosts.ops]
-address = "{ops}"
-[hosts.laptop]
-[vehicles.d1]
+VEHICLES = """
+[vehicles.c1]
+rigid_body = "c1"
 mavlink = "udpin:{cc1}:14541"
-system_id = 1
-signing_key_file = "keys/d1.key"
+system_id = 11
+signing_key_file = "keys/c1.key"
 sim = {{ start = [-1.0, 0.0] }}
-[vehicles.d2]
+
+[vehicles.c2]
+rigid_body = "c2"
 mavlink = "udpin:{cc2}:14542"
-system_id = 2
-signing_key_file = "keys/d2.key"
+system_id = 12
+signing_key_file = "keys/c2.key"
 sim = {{ start = [1.0, 0.0] }}
+
+[vehicles.c3]
+rigid_body = 3
+mavlink = "udpin:127.0.0.1:14543"
+system_id = 13
+vision_rate = 30.0
+state_rate = 20.0
+telemetry_rate = 2.0
+sim = {{ start = [0.0, 1.0] }}
 """
+SYSIDS = {"c1": 11, "c2": 12, "c3": 13}
+
+
+def lab_config(kind: str, directory: Path) -> str:
+    """``deploy/lab.example.toml`` for the namespaces: their addresses, the Motive emulator and simulated
+    autopilots on the ground computer (signed UDP where a link crosses the network), recordings in
+    ``directory``; with ``kind`` "password", user/password logins over TCP instead of mutual TLS."""
+    text = (REPO / "deploy" / "lab.example.toml").read_text()
+    for lab_address, host in (("192.168.1.20", "ground"), ("192.168.1.31", "cc1"), ("192.168.1.32", "cc2")):
+        text = text.replace(f'"{lab_address}', f'"{ADDRESS[host]}').replace(
+            f"/{lab_address}:", f"/{ADDRESS[host]}:"
+        )
+    text = text.replace('server = "192.168.1.10"', 'server = "127.0.0.1"')
+    text = text.replace(f'interface = "{ADDRESS["ground"]}"', 'interface = "127.0.0.1"')
+    text = text.replace("multicast = true", "multicast = false")
+    text = text.replace('services = ["router", "mocap", "transform", "recorder"]',
+                        'services = ["router", "sim", "mocap", "transform", "recorder"]')  # fmt: skip
+    text = text.replace('"/var/lib/arena/recordings"', f'"{directory / "recordings"}"')
+    laptop = "[hosts.laptop]  # a researcher's laptop: reads the arena, commands nothing\n\n"
+    vehicles = VEHICLES.format(**ADDRESS) + "\n"
+    text = text[: text.index("# autopilot = ")] + laptop + vehicles + text[text.index("[recorder]") :]
+    assert text.count("[vehicles.") == 3, text
+    if kind == "password":
+        text = text.replace('"tls/', '"tcp/')
+        start = text.index("tls = true")
+        end = text.index("command_hosts")
+        text = text[:start] + PASSWORD + "\n" + text[end:]
+    return text
+
+
 TLS = (
     'tls = true\nmtls = true\nca = "secrets/ca.pem"\ncert = "secrets/{host}.pem"\nkey = "secrets/{host}.key"'
 )
@@ -173,7 +187,7 @@ class Reader:
             self.raw.append(line)
             if line.startswith("{"):
                 msg = json.loads(line)
-                if "t" in msg and "d1" in msg:
+                if "n_spoofed" in msg:
                     self.latest = msg
                 else:
                     self.messages.append(msg)
@@ -182,25 +196,38 @@ class Reader:
 
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("kind", ["tls", "password"])
-def test_outsider_cannot_command_spoof_or_divert(lab: Lab, tmp_path: Path, kind: str) -> None:
+@pytest.mark.covers(
+    "arena security init lab.toml",
+    "arena security check lab.toml",
+    "arena config check lab.toml",
+    "arena up lab.toml --host ground",
+    "arena up lab.toml --host cc1",
+    "arena status -c lab.toml",
+)
+def test_lab_steps_then_the_outsider_cannot_command_spoof_or_divert(
+    lab: Lab, tmp_path: Path, kind: str
+) -> None:
     scheme = "tls" if kind == "tls" else "tcp"
-    credentials = TLS if kind == "tls" else PASSWORD
     cfg = tmp_path / "lab.toml"
-    cfg.write_text(CONFIG.format(scheme=scheme, credentials=credentials, **ADDRESS))
+    cfg.write_text(lab_config(kind, tmp_path))
     (tmp_path / "keys").mkdir()
-    for v in ("d1", "d2"):
+    for v in ("c1", "c2"):
         generate_key_file(tmp_path / "keys" / f"{v}.key")
+    # The README's lab steps, as typed on the ground computer (the credentials are copied to each host:
+    # here the namespaces share this folder).
     print(typed("security", "init", "lab.toml", cwd=tmp_path))
     typed("security", "check", "lab.toml", cwd=tmp_path)
+    typed("config", "check", "lab.toml", cwd=tmp_path)
     # Identities the router knows of (a lab certificate, a dictionary entry) that the config does not name.
     tried = identities(kind, tmp_path, f"{scheme}/{ADDRESS['ground']}:7447")
-    dry = typed("up", "lab.toml", "--host", "cc1", "--dry-run", cwd=tmp_path)
-    assert "--listen" not in dry and "--mode peer" not in dry, dry
+    for host in ("cc1", "cc2"):
+        dry = typed("up", "lab.toml", "--host", host, "--dry-run", cwd=tmp_path)
+        assert "--listen" not in dry and "--mode peer" not in dry, dry
 
     logs: dict[str, list[str]] = {h: [] for h in ("ground", "cc1", "cc2")}
     outs = {}
     for host in logs:
-        _, outs[host] = lab.spawn(host, *ARENA, "up", str(cfg), "--host", host)
+        _, outs[host] = lab.spawn(host, *ARENA, "up", "lab.toml", "--host", host, cwd=tmp_path)
 
     def context() -> str:
         for h, q in outs.items():
@@ -213,15 +240,22 @@ def test_outsider_cannot_command_spoof_or_divert(lab: Lab, tmp_path: Path, kind:
         return any("routing on" in line for line in logs["ground"])
 
     wait_for(router_up, timeout=60, what="the router")
-    ops_proc, ops_lines = lab.spawn("ops", sys.executable, "-m", "tests.outsider_ops", str(cfg), stdin=True)
+    pilots = [sys.executable, "-m", "tests.outsider_ops", str(cfg), "ground", "c1"]
+    ops_proc, ops_lines = lab.spawn("ground", *pilots, stdin=True)
     ops = Reader(ops_lines)
     try:
-        wait_for(
-            lambda: ops.pump() and any("airborne" in m for m in ops.messages), 180, 0.2, what="d1 airborne"
-        )
-    except AssertionError as exc:
+        wait_for(lambda: ops.pump() is not None and any("airborne" in m for m in ops.messages), 180, 0.2,
+                 what="c1 airborne")  # fmt: skip
+    except (AssertionError, TimeoutError) as exc:
         raise AssertionError(f"{exc}\n{context()}") from None
     assert not [m for m in ops.messages if "error" in m], context()
+    status_proc, status_lines = lab.spawn(
+        "ground", *ARENA, "status", "-c", "lab.toml", cwd=tmp_path, env={"ARENA_HOST": "ground"}
+    )
+    assert status_proc.wait(timeout=60) == 0
+    status = "".join(drain(status_lines, []))
+    for expected in ("gateway.c1", "gateway.c2", "gateway.c3", "router", "transform"):
+        assert expected in status, status
 
     # Every socket the arena's computers listen on: only the router's (authenticated) port leaves a
     # computer over TCP; the UDP ones are MAVLink links (signed here) and the simulated autopilots.
@@ -237,12 +271,12 @@ def test_outsider_cannot_command_spoof_or_divert(lab: Lab, tmp_path: Path, kind:
     assert (ADDRESS["cc1"], 14541) in udp and (ADDRESS["cc2"], 14542) in udp, udp
 
     spec: dict[str, Any] = {
-        "vehicles": {"d1": 1, "d2": 2},
+        "vehicles": SYSIDS,
         "ca": str(tmp_path / "secrets" / "ca.pem") if kind == "tls" else "",
         "tcp": tcp,
         "udp": udp,
         "identities": tried,
-        "replays": {v: replay_frame(tmp_path / "keys" / f"{v}.key", i) for i, v in ((1, "d1"), (2, "d2"))},
+        "replays": {v: replay_frame(tmp_path / "keys" / f"{v}.key", SYSIDS[v]) for v in ("c1", "c2")},
     }
     spec_file = tmp_path / "attack.json"
     spec_file.write_text(json.dumps(spec))
@@ -258,36 +292,32 @@ def test_outsider_cannot_command_spoof_or_divert(lab: Lab, tmp_path: Path, kind:
     for name, r in results.items():
         if name.startswith("no credentials") or name.startswith(("another CA", "wrong password")):
             assert not r["opened"], f"{name}: a session opened: {r}"
-    visitor = results[f"visitor {spec['identities']['visitor'][0]}"]
-    laptop = results[f"laptop {spec['identities']['laptop'][0]}"]
+    visitor = results[f"visitor {tried['visitor'][0]}"]
+    companion = results[f"laptop {tried['laptop'][0]}"]
     # A lab identity that is no host of the config gets nothing: not one sample, no command answered.
     assert visitor["seen"] == 0, visitor
     assert all("True" not in a for a in visitor["answers"].values()), visitor
     # A non-commanding host reads (it is a host) but commands nothing.
-    assert laptop["seen"] > 0, laptop
-    assert all("True" not in a for a in laptop["answers"].values()), laptop
+    assert companion["seen"] > 0, companion
+    assert all("True" not in a for a in companion["answers"].values()), companion
     assert results["mavlink "]["diverted_bytes"] == 0, results["mavlink "]
 
-    # The pilots saw no spoofed state or estop, d2 never armed, d1 flew on with its vision fused.
+    # The pilots saw no spoofed state or estop, c2/c3 never armed, c1 flew on with its vision fused.
     report = ops.pump()
     assert report["n_spoofed"] == 0, report["spoofed"]
-    assert report["d2"]["armed"] is False and report["d2"]["mode"] != "SPOOFED", report
-    assert report["d1"]["armed"] and report["d1"]["z"] < -0.7 and report["d1"]["fused"], report
-    assert report["d1"]["link"] and report["d2"]["link"], report
-    north, east, _ = report["d1"]["p"]
-    assert abs(north + 1.0) < 0.25 and abs(east) < 0.25, f"d1 moved: {report['d1']}"
+    for other in ("c2", "c3"):
+        assert report[other]["armed"] is False and report[other]["mode"] != "SPOOFED", report
+    assert report["c1"]["armed"] and report["c1"]["z"] < -0.7 and report["c1"]["fused"], report
+    assert all(report[v]["link"] for v in SYSIDS), report
+    north, east, _ = report["c1"]["p"]
+    assert abs(north + 1.0) < 0.25 and abs(east) < 0.25, f"c1 moved: {report['c1']}"
     # What the links dropped is counted by reason in each gateway's stats, never silently.
-    for gateway in ("gateway.d1", "gateway.d2"):
+    for gateway in ("gateway.c1", "gateway.c2"):
         dropped = report["rejected"].get(gateway, {})
-        signing = {k: n for k, n in dropped.items() if k.startswith(("signing", "mavlink"))}
-        assert sum(signing.values()) > 0, f"{gateway}: nothing counted: {dropped}"
+        assert sum(n for k, n in dropped.items() if k.startswith("mavlink")) > 0, f"{gateway}: {dropped}"
     assert ops_proc.stdin is not None
     ops_proc.stdin.write("land\n")
     ops_proc.stdin.flush()
     wait_for(lambda: ops.pump() is not None and any("landed" in m for m in ops.messages), 90, 0.2,
-             what="d1 landed")  # fmt: skip
-
-    # What the link dropped is counted and named in the gateways' logs, never silently.
-    for h, q in outs.items():
-        drain(q, logs[h])
+             what="c1 landed")  # fmt: skip
     print(context())
