@@ -21,6 +21,7 @@ from arena_common import (
     AsyncArena,
     FlightMode,
     LandedState,
+    SafetyRefused,
     StreamTimeout,
     Trajectory,
     VehicleNotPresent,
@@ -348,3 +349,53 @@ def test_setpoint_fields_are_checked_in_the_caller(client: tuple[Arena, Bus, Are
     with pytest.raises(ValueError, match="acceleration needs three components"):
         ctl.full_state((0, 0, -1), (0, 0, 0), (0, 0))
     ctl.close()
+
+
+def test_a_setpoint_the_gateway_would_refuse_raises_in_the_caller(
+    client: tuple[Arena, Bus, ArenaConfig],
+) -> None:
+    """Issue 25: an over-limit setpoint used to be dropped by the gateway in silence (its lease lapsed and
+    PX4 landed the vehicle 1.5 s later); it must fail in the program that sent it, before it is streamed."""
+    arena, _, cfg = client
+    d1 = arena.vehicle("d1")
+    ctl = d1.offboard(engage=False)
+    too_fast = cfg.arena.max_speed + 0.5
+    with pytest.raises(SafetyRefused, match=rf"horizontal speed {too_fast:.2f} m/s above max_speed"):
+        ctl.velocity(too_fast, 0.0, 0.0)
+    with pytest.raises(SafetyRefused, match=r"vertical speed .* above max_climb"):
+        ctl.velocity(0.0, 0.0, -(cfg.arena.max_climb + 0.1))
+    with pytest.raises(SafetyRefused, match="horizontal speed"):
+        ctl.velocity_body(0.0, too_fast, 0.0)  # turning by the heading keeps the norm
+    with pytest.raises(SafetyRefused, match="position outside the safe volume: north"):
+        ctl.position(cfg.arena.size[0], 0.0, -1.0)
+    with pytest.raises(SafetyRefused, match=r"acceleration feed-forward 6.00"):
+        ctl.position(0.0, 0.0, -1.0, acceleration=(0.0, 6.0, 0.0))
+    with pytest.raises(SafetyRefused, match=r"tilted 50.0°"):
+        ctl.attitude(math.radians(50.0), 0.0, 0.0, 0.5)
+    with pytest.raises(SafetyRefused, match="yaw rate"):
+        ctl.velocity(0.1, 0.0, 0.0, yaw_rate=10.0)
+    assert ctl._fields is None and ctl.sent == 0  # nothing refused was kept to be streamed
+    ctl.velocity(cfg.arena.max_speed, 0.0, 0.0)  # at the limit: accepted
+    ctl.close()
+
+
+def test_a_refusal_reported_by_the_gateway_raises_at_the_next_call(
+    client: tuple[Arena, Bus, ArenaConfig],
+) -> None:
+    """What only the gateway can judge (a velocity leading further out of the room) comes back as its
+    "setpoint refused" event, which the stream raises at the next call and again never in silence."""
+    arena, feed, _ = client
+    d1 = arena.vehicle("d1")
+    ctl = d1.offboard(engage=False)
+    ctl.velocity(0.1, 0.0, 0.0)
+    with ctl:
+        refusal = wire.Event(
+            t=wire.now_ns(),
+            kind="safety",
+            text="setpoint refused: velocity leads further out of the safe volume",
+        )
+        _put_until(feed, keys.events("d1"), refusal, lambda: ctl._refused is not None, "the refusal heard")
+        time.sleep(0.3)  # the copies published while the subscription came up arrive (one is kept)
+        with pytest.raises(SafetyRefused, match=r"velocity leads further out .*by the gateway"):
+            ctl.velocity(0.1, 0.0, 0.0)
+        ctl.velocity(-0.1, 0.0, 0.0)  # raised once; the next setpoint goes

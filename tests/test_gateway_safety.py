@@ -269,3 +269,49 @@ def test_without_a_time_reference_arming_is_refused_naming_the_clock(
     finally:
         proc.stop()
         rig.close()
+
+
+class _Link:
+    """Just enough of a MAVLink link for the forwarder: encodes with pymavlink, records what is sent."""
+
+    def __init__(self) -> None:
+        from pymavlink.dialects.v20 import common as mavlink2
+
+        self.mav = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)
+        self.sent: list[object] = []
+
+    def send(self, msg: object) -> bool:
+        self.sent.append(msg)
+        return True
+
+
+def test_an_offboard_block_after_a_hold_is_no_held_back_warning(tmp_path: Path) -> None:
+    """Issue 25: a block opened after a Hold streams, then commands OFFBOARD itself 0.3 s later; the
+    setpoints of that moment are held back by the latch, which is no reason for a WARNING.  A stream held
+    back for longer (no one commands OFFBOARD) still is."""
+    import logging
+
+    from arena_common.gateway.events import EventSink
+    from arena_common.gateway.setpoints import HELD_BACK_GRACE, SetpointForwarder
+
+    cfg = config_mod.load(write_config(tmp_path, "tcp/127.0.0.1:7447", n_vehicles=1))
+    events = EventSink(None, logging.getLogger("test"))
+    link = _Link()
+    fwd = SetpointForwarder(link, 1, cfg.arena, events)  # type: ignore[arg-type]
+    sp = wire.Setpoint(t=1, p=(0.0, 0.0, -1.0), yaw=0.0, lease=0.5)
+    fwd.latch("mode AUTO.LOITER")  # a Hold left offboard
+    t = 100.0
+    for _ in range(6):  # the block's 0.3 s of stream before its mode command (20 Hz)
+        assert fwd.offer(sp, t) is None
+        t += 0.05
+    fwd.unlatch()  # the block's mode OFFBOARD
+    fwd.offer(sp, t)
+    assert [e.text for e in events.recent if "held back" in e.text] == []
+    assert link.sent  # streaming once released
+    # A stream nobody switches to OFFBOARD: warned about after the grace.
+    fwd.latch("mode AUTO.LOITER")
+    t += 5.0
+    for _ in range(int(HELD_BACK_GRACE / 0.05) + 2):
+        fwd.offer(sp, t)
+        t += 0.05
+    assert [e.sev for e in events.recent if "held back" in e.text] == [4]

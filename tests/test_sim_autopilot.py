@@ -521,7 +521,7 @@ def test_takeoff_command_and_flight_termination(
     gcs.wait_for(lambda: gcs.texts_with("vision fusion started") != [], 2.0, "vision fusion")
     assert gcs.command(px4.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, 1.5) == px4.MAV_RESULT_ACCEPTED
     assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1) == px4.MAV_RESULT_ACCEPTED
-    gcs.wait_for(lambda: gcs.mode == "AUTO.LOITER" and gcs.height > 1.4, 8.0, "takeoff to 1.5 m, then hold")
+    gcs.wait_for(lambda: gcs.mode == "AUTO.LOITER" and gcs.height > 1.4, 20.0, "takeoff to 1.5 m, then hold")
     assert gcs.command(px4.MAV_CMD_DO_FLIGHTTERMINATION, 1) == px4.MAV_RESULT_ACCEPTED
     gcs.wait_for(lambda: gcs.heartbeat.system_status == px4.MAV_STATE_FLIGHT_TERMINATION, 1.0, "termination")
     gcs.wait_for(lambda: ap.true_pose().position[2] == 0.0, 1.5, "fall")

@@ -25,7 +25,7 @@ from tests.conftest import wait_for
 from tests.foxglove_decode import Frames, entity_points, message_class
 
 # The Foxglove SDK's server speaks the Foxglove WebSocket protocol (v1) under its current subprotocol
-# name; the older name, foxglove.websocket.v1, names the same protocol but the SDK refuses it.
+# name; the older name, foxglove.websocket.v1, names the same protocol: the viewer accepts both.
 SUBPROTOCOL = Subprotocol("foxglove.sdk.v1")
 LEGACY = Subprotocol("foxglove.websocket.v1")
 
@@ -152,8 +152,19 @@ def test_view_streams_the_live_scene_to_a_websocket_client(
                     return all(client.received.get(t) for t in wanted)
 
                 wait_for(received, 20.0, 0.0, "a message on every subscribed topic")
-            with pytest.raises(InvalidStatus):  # see SUBPROTOCOL
-                connect(f"ws://127.0.0.1:{view.port}", subprotocols=[LEGACY], open_timeout=10)
+            # Issue 25: a client offering only the older name (older Lichtblick, PlotJuggler, roslibjs) is
+            # served the same protocol under the name it asked for.
+            with connect(f"ws://127.0.0.1:{view.port}", subprotocols=[LEGACY], open_timeout=10) as ws:
+                assert ws.subprotocol == LEGACY
+                legacy = Client(ws)
+                wait_for(
+                    lambda: legacy.pump(0.2) or "/arena/d1/tf" in legacy.channels, 20.0, 0.0, "advertised"
+                )
+                assert legacy.server_info.get("name") == "Flying Arena"
+                legacy.subscribe(["/arena/d1/tf"])
+                wait_for(lambda: legacy.pump(0.2) or legacy.received.get("/arena/d1/tf"), 20.0, 0.0, "data")
+            with pytest.raises(InvalidStatus):  # a subprotocol that is no name of this protocol
+                connect(f"ws://127.0.0.1:{view.port}", subprotocols=[Subprotocol("x.v1")], open_timeout=10)
         finally:
             stop.set()
             pub.join(timeout=5)

@@ -25,6 +25,7 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
 from arena_common.bus.session import Lane
+from arena_common.client.streams import Callback
 from arena_common.client.trajectory import Trajectory
 from arena_common.core import keys, wire
 from arena_common.core.errors import CommandError, CommandRejected, SafetyRefused, VehicleNotPresent
@@ -33,12 +34,24 @@ from arena_common.geometry.quat import quat_from_euler
 if TYPE_CHECKING:
     from arena_common.client.vehicle import Vehicle
 
-__all__ = ["MAX_ACCEL", "MAX_START_OFFSET", "OffboardStream", "trajectory_problem"]
+__all__ = [
+    "MAX_ACCEL",
+    "MAX_START_OFFSET",
+    "MAX_TILT",
+    "MAX_YAW",
+    "MAX_YAW_RATE",
+    "OffboardStream",
+    "setpoint_problem",
+    "trajectory_problem",
+]
 
 Vec3 = tuple[float, float, float]
 log = logging.getLogger("arena_common.client")
 MAX_ACCEL = 5.0  # m/s²: the gateway's limit on an acceleration feed-forward (gateway.setpoints.MAX_ACCEL)
 MAX_START_OFFSET = 0.3  # m: a trajectory must start this close to the vehicle
+MAX_YAW = 1000.0  # rad: the gateway's limit on a yaw (gateway.setpoints.MAX_YAW)
+MAX_YAW_RATE = 2.0 * math.pi  # rad/s: the gateway's limit on a yaw rate (gateway.setpoints.MAX_YAW_RATE)
+MAX_TILT = math.radians(35.0)  # rad: the gateway's limit on an attitude setpoint's tilt
 
 
 def _vec(values: Sequence[float], what: str) -> Vec3:
@@ -61,6 +74,50 @@ def trajectory_problem(vehicle: Vehicle, trajectory: Trajectory) -> str | None:
     if problem is None and p is not None and math.dist(p, trajectory.start) > MAX_START_OFFSET:
         problem = f"it starts {math.dist(p, trajectory.start):.2f} m from the vehicle"
     return problem
+
+
+def setpoint_problem(vehicle: Vehicle, fields: dict[str, Any]) -> str | None:
+    """Why the gateway would refuse a setpoint of these fields (``p``, ``v``, ``a``, ``yaw``, ``yr``,
+    ``q``/``thrust``) under the arena's limits (safe volume, ``max_speed``, ``max_climb``, ``MAX_ACCEL``,
+    yaw, tilt), or None.  A body-frame velocity is checked by its norms, which turning does not change.
+
+    The gateway checks once more, with what only it knows (where the vehicle is): a velocity leading
+    further out of the safe volume, an attitude stream outside it; those refusals reach the program as
+    events, which :class:`OffboardStream` turns into :class:`SafetyRefused` at the next call.
+    """
+    cfg = vehicle.arena.config
+    yaw, yr = fields.get("yaw"), fields.get("yr")
+    if yaw is not None and abs(yaw) > MAX_YAW:
+        return f"yaw {yaw!r} rad is not within ±{MAX_YAW:g} rad"
+    if yr is not None and abs(yr) > MAX_YAW_RATE:
+        return f"yaw rate {yr!r} rad/s beyond ±{MAX_YAW_RATE:.2f} rad/s"
+    q = fields.get("q")
+    if q is not None:
+        x, y = q[1], q[2]
+        tilt = math.acos(max(-1.0, min(1.0, 1.0 - 2.0 * (x * x + y * y))))
+        if tilt > MAX_TILT + 1e-9:
+            return (
+                f"attitude tilted {math.degrees(tilt):.1f}° from level, above {math.degrees(MAX_TILT):.0f}°"
+            )
+    a = fields.get("a")
+    if a is not None and math.sqrt(sum(x * x for x in a)) > MAX_ACCEL + 1e-9:
+        return f"acceleration feed-forward {math.sqrt(sum(x * x for x in a)):.2f} m/s² above {MAX_ACCEL:.1f} m/s²"
+    if cfg is None:
+        return None
+    p = fields.get("p")
+    if p is not None:
+        for k, axis in enumerate(("north", "east", "down")):
+            lo, hi = cfg.arena.safe_box()[k]
+            if not lo <= p[k] <= hi:
+                return f"position outside the safe volume: {axis} {p[k]:.2f} m outside [{lo:.2f}, {hi:.2f}]"
+    v = fields.get("v")
+    if v is not None:
+        speed = math.hypot(v[0], v[1])
+        if speed > cfg.arena.max_speed + 1e-9:
+            return f"horizontal speed {speed:.2f} m/s above max_speed {cfg.arena.max_speed:.2f}"
+        if abs(v[2]) > cfg.arena.max_climb + 1e-9:
+            return f"vertical speed {abs(v[2]):.2f} m/s above max_climb {cfg.arena.max_climb:.2f}"
+    return None
 
 
 def _checked(fields: dict[str, Any]) -> None:
@@ -94,6 +151,8 @@ class OffboardStream:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._handed_over = False
+        self._refused: str | None = None  # a refusal the gateway reported, raised at the next call
+        self._watch: Callback | None = None
         self._pub = vehicle.arena.bus.stream_publisher(
             keys.setpoint(vehicle.name), wire.Setpoint, Lane.CONTROL
         )
@@ -101,8 +160,32 @@ class OffboardStream:
         self.errors = 0
 
     # -- what to stream -------------------------------------------------------------------------------
+    def _check(self, fields: dict[str, Any]) -> None:
+        """Raise in the caller's thread what the gateway would refuse (or has refused since the last
+        call): a refused setpoint never reaches the vehicle, so streaming it would only let the lease
+        lapse and the autopilot's offboard-loss failsafe land the vehicle."""
+        _checked(fields)  # NaN, infinity, yaw with yaw rate: a PayloadError (ValueError)
+        self._raise_refused()
+        problem = setpoint_problem(self.vehicle, fields)
+        if problem is not None:
+            name = self.vehicle.name
+            raise SafetyRefused(f"{name}: setpoint refused: {problem}", result="REFUSED", drone=name)
+
+    def _on_event(self, event: wire.Event) -> None:
+        if event.kind == "safety" and event.text.startswith("setpoint refused"):
+            with self._lock:
+                self._refused = self._refused or event.text
+
+    def _raise_refused(self) -> None:
+        """Raise :class:`SafetyRefused` once for a refusal the gateway reported during this block."""
+        with self._lock:
+            text, self._refused = self._refused, None
+        if text is not None:
+            name = self.vehicle.name
+            raise SafetyRefused(f"{name}: {text} (by the gateway)", result="REFUSED", drone=name)
+
     def _set(self, **fields: Any) -> None:
-        _checked(fields)  # a wrong setpoint fails here, in the caller's thread
+        self._check(fields)  # a wrong setpoint fails here, in the caller's thread
         with self._lock:
             self._fields, self._body, self._traj = fields, None, None
 
@@ -148,7 +231,7 @@ class OffboardStream:
         if yaw is not None and yaw_rate is not None:
             raise ValueError("give yaw or yaw rate, not both")
         body = (float(forward), float(right), float(down))
-        _checked({"v": body, "yaw": yaw, "yr": yaw_rate})
+        self._check({"v": body, "yaw": yaw, "yr": yaw_rate})
         with self._lock:
             self._fields, self._body, self._traj = None, (body, yaw, yaw_rate), None
 
@@ -290,6 +373,7 @@ class OffboardStream:
                 )
             e = v.euler
             self.position(*p, yaw=e[2] if e else None)
+        self._watch = v.on_event(self._on_event)
         self._thread = threading.Thread(target=self._run, name=f"offboard:{v.name}", daemon=True)
         self._thread.start()
         if self.engage:
@@ -306,6 +390,9 @@ class OffboardStream:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(2.0)
+        if self._watch is not None:
+            self._watch.cancel()
+            self._watch = None
         self._pub.close()
 
     def __exit__(
@@ -319,3 +406,5 @@ class OffboardStream:
                 raise
         finally:
             self.close()
+        if exc_type is None:
+            self._raise_refused()

@@ -26,6 +26,7 @@ callbacks.  Commands block until the autopilot confirms or raise a typed
 from __future__ import annotations
 
 import collections
+import logging
 import math
 import threading
 import time
@@ -60,6 +61,8 @@ if TYPE_CHECKING:
     from arena_common.client.arena import Arena
 
 __all__ = ["MOCAP_MAX_AGE", "STATE_MAX_AGE", "Vehicle"]
+
+log = logging.getLogger("arena_common.client")
 
 Vec3 = tuple[float, float, float]
 MOCAP_MAX_AGE = 0.5  # s: an older mocap pose is not valid
@@ -418,14 +421,25 @@ class Vehicle:
         """Cut the motors now, in the air too (forced disarm)."""
         self.command("kill", timeout)
 
-    def takeoff(self, height: float = 1.0, timeout: float = 20.0, tolerance: float = 0.15) -> None:
-        """Take off to ``height`` metres above the floor and wait until there."""
+    def takeoff(self, height: float = 1.0, timeout: float = 30.0, tolerance: float = 0.1) -> float:
+        """Take off to ``height`` metres above the floor; return once within ``tolerance`` of it, with the
+        seconds (arena time) it took from the command.
+
+        PX4 v1.16 takes its time (docs/px4.md): ~4 s on the ground (motor spool-up, thrust ramp), then it
+        reports Hold ``NAV_MC_ALT_RAD`` (0.8 m) short of the height and closes the rest slowly — about
+        9.5 s for 1 m in SITL.  The simulated autopilot does the same (``ideal`` climbs at once).
+        """
+        clock = self.arena.clock
+        started = clock.now()
         self.command("takeoff", min(timeout, 10.0), height=float(height))
         self.wait_until(
-            lambda v: (p := v.position) is not None and -p[2] >= height - tolerance,
-            self.arena.clock.wall(timeout),
-            f"height {height} m",
+            lambda v: (p := v.position) is not None and abs(-p[2] - height) <= tolerance,
+            clock.wall(timeout),
+            f"height {height} m (within {tolerance} m)",
         )
+        took = clock.now() - started
+        log.info("%s: took off to %.2f m in %.1f s", self.name, height, took)
+        return took
 
     def land(self, timeout: float = 30.0, wait: bool = True) -> None:
         """Land where it is; with ``wait`` block until it is on the ground and disarmed."""

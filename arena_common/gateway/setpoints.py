@@ -23,7 +23,9 @@ The rules, in the order they apply:
 - Whenever the vehicle leaves OFFBOARD (a failsafe, a land, hold or mode command, a ground station, an
   estop), the forwarder *latches*: it stops sending and holds user setpoints back, so that neither PX4
   nor a late user stream can re-engage offboard by itself.  Only an explicit ``mode OFFBOARD`` or
-  ``goto`` command releases the latch.
+  ``goto`` command releases the latch.  A program opening an offboard block streams first and commands
+  OFFBOARD a moment later (PX4 needs the stream before the switch): setpoints held back for less than
+  ``HELD_BACK_GRACE`` s are that, and only a stream held back longer is warned about.
 - ``goto`` is the gateway's own stream: a position carrot that moves from the vehicle toward the goal
   at ``goto_speed`` (horizontal) and ``goto_climb`` (vertical), then holds the goal indefinitely, until
   a user setpoint takes over, another command changes the mode, or the vehicle leaves OFFBOARD.
@@ -48,6 +50,7 @@ from arena_common.runtime.service import Stats
 
 __all__ = [
     "ATTITUDE_LOOKAHEAD",
+    "HELD_BACK_GRACE",
     "MAX_ACCEL",
     "MAX_TILT",
     "MAX_YAW",
@@ -65,6 +68,7 @@ MAX_YAW_RATE = 2.0 * math.pi  # rad/s
 MAX_ACCEL = 5.0  # m/s², norm of an acceleration feed-forward: a trajectory's, not an aerobatic one
 ATTITUDE_LOOKAHEAD = 0.75  # s: an attitude stream stops where the vehicle's velocity takes it out this soon
 MAX_TILT = math.radians(35.0)  # rad, of an attitude setpoint from level: PX4's default MPC_TILTMAX_AIR
+HELD_BACK_GRACE = 1.5  # s: a stream held back this long without a mode OFFBOARD command is warned about
 
 
 def yaw_problem(yaw: float | None, yr: float | None = None) -> str | None:
@@ -157,6 +161,7 @@ class SetpointForwarder:
         self._stream: _Stream | None = None
         self._latched: str | None = None
         self._since = math.inf
+        self._held: tuple[float, float] | None = None  # first and latest user setpoint held back
         self._last_send = -math.inf
         self._last_tick = time.monotonic()
         self._t0 = time.monotonic()
@@ -260,15 +265,23 @@ class SetpointForwarder:
                 thrust=sp.thrust or 0.0,
             )
             if self._latched is not None:
-                self.events.emit(
-                    "safety",
-                    f"setpoints held back: offboard was left ({self._latched}); command mode OFFBOARD",
-                    4,
-                    every=5.0,
-                )
+                self._held_back(now)
             elif now - self._last_send >= self.min_gap:
                 self._send(now)
         return None
+
+    def _held_back(self, now: float) -> None:
+        """Note a user setpoint held back by the latch; warn once the stream has been held back for
+        ``HELD_BACK_GRACE`` s (a block that commands OFFBOARD itself does so well before)."""
+        first = now if self._held is None or now - self._held[1] > HELD_BACK_GRACE else self._held[0]
+        self._held = (first, now)
+        if now - first >= HELD_BACK_GRACE:
+            self.events.emit(
+                "safety",
+                f"setpoints held back: offboard was left ({self._latched}); command mode OFFBOARD",
+                4,
+                every=5.0,
+            )
 
     def start_goto(self, goal: Vec3, yaw: float | None, now: float | None = None) -> None:
         """Stream toward ``goal`` (checked by the caller) and hold it; releases the latch.
@@ -285,7 +298,7 @@ class SetpointForwarder:
         if yaw is None:
             mask |= px4.TYPEMASK_YAW_IGNORE
         with self._lock:
-            self._latched = None
+            self._latched, self._held = None, None
             self._stream = _Stream("goto", start, None, yaw, None, mask, math.inf, goal)
             self._last_tick = now
             self._send(now)
@@ -312,7 +325,7 @@ class SetpointForwarder:
     def unlatch(self) -> None:
         """Allow streaming again (an explicit request to engage offboard)."""
         with self._lock:
-            self._latched = None
+            self._latched, self._held = None, None
 
     @property
     def latched(self) -> str | None:

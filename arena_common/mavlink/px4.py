@@ -317,6 +317,11 @@ PX4_DEFAULTS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "MPC_TILTMAX_AIR": (45.0, _F),  # deg
     "MPC_YAWRAUTO_MAX": (45.0, _F),  # deg/s
     "MPC_XY_CRUISE": (5.0, _F),
+    "MPC_ACC_HOR": (3.0, _F),  # m/s², with MPC_JERK_AUTO: where Hold brakes to (navigator's braking stop)
+    "MPC_JERK_AUTO": (4.0, _F),  # m/s³
+    "MPC_TKO_RAMP_T": (3.0, _F),  # s of takeoff thrust ramp
+    "COM_SPOOLUP_TIME": (1.0, _F),  # s from arming before the controllers may lift off
+    "NAV_MC_ALT_RAD": (0.8, _F),  # m: a takeoff is complete (→ Hold) this close to its altitude
     "BAT_LOW_THR": (0.15, _F),
     "BAT_CRIT_THR": (0.07, _F),
     "BAT_EMERGEN_THR": (0.05, _F),

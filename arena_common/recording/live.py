@@ -1,6 +1,7 @@
 """The live 3D view: the bus as a Foxglove scene, served over the Foxglove WebSocket protocol.
 
-:class:`LiveView` runs the Foxglove SDK's WebSocket server (subprotocol ``foxglove.websocket.v1``) and
+:class:`LiveView` runs the Foxglove SDK's WebSocket server (subprotocol ``foxglove.sdk.v1``, and the same
+protocol's older name ``foxglove.websocket.v1`` through :mod:`arena_common.recording.ws_subprotocol`) and
 publishes on it what a recording holds: the 3D scene of :mod:`arena_common.recording.scene` (protobuf)
 and, beside it, every arena key in the recordings' JSON form (so that the same Foxglove layout plots
 live data and recordings).  Foxglove (the desktop app or app.foxglove.dev) connects to
@@ -23,6 +24,7 @@ from arena_common.core.config import ArenaConfig, ArenaSpec
 from arena_common.core.errors import PayloadError
 from arena_common.recording.codec import JSON, SCHEMA_ENCODING, decode_sample, encode_json, record_schema
 from arena_common.recording.scene import ENCODING, Scene, SceneMessage, schemas
+from arena_common.recording.ws_subprotocol import SubprotocolBridge
 from arena_common.runtime.service import running
 
 DEFAULT_PORT = 8765
@@ -53,12 +55,19 @@ class LiveView:
         self._lock = threading.Lock()
         self._scene_channels: dict[str, foxglove.Channel] = {}
         self._key_channels: dict[tuple[str, type[wire.Payload]], foxglove.Channel] = {}
-        self.server = foxglove.start_server(name=name, host=address, port=port, context=self.context)
+        # The SDK's server on a loopback port of its own; clients reach it through the bridge, which
+        # also accepts the protocol's older subprotocol name (older Lichtblick, PlotJuggler, roslibjs).
+        self.server = foxglove.start_server(name=name, host="127.0.0.1", port=0, context=self.context)
+        try:
+            self.bridge = SubprotocolBridge(address, port, int(self.server.port))
+        except BaseException:
+            self.server.stop()
+            raise
 
     @property
     def port(self) -> int:
-        """The TCP port the server listens on."""
-        return int(self.server.port)
+        """The TCP port the viewer listens on."""
+        return self.bridge.port
 
     def add(self, key: str, raw: bytes, encoding: str, t_recv: int) -> bool:
         """Show one sample; ``False`` when it does not decode (it is then only counted)."""
@@ -102,6 +111,7 @@ class LiveView:
 
     def close(self) -> None:
         """Stop the server (clients are disconnected)."""
+        self.bridge.close()
         self.server.stop()
 
 

@@ -100,6 +100,10 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
     (gateway on ``tcp:``). ``params`` overrides PX4's defaults as if stored on the vehicle (in effect from
     boot). The vehicle starts disarmed on the floor at ``position`` (arena NED, down = 0) heading ``yaw``
     rad. ``estimate_lag`` (s, ≥ 0) is the time constant of the lag of its estimate behind its filter.
+    By default the takeoff and Hold behave as PX4 v1.16 SITL was measured to (docs/px4.md: spool-up and
+    thrust ramp on the ground, Hold reported NAV_MC_ALT_RAD short of the altitude and a slow approach
+    after it; Hold entered while moving stops at PX4's braking point); ``ideal`` climbs at once and
+    holds where the mode began.
     """
 
     COMPONENT_ID = px4.MAV_COMP_ID_AUTOPILOT1
@@ -124,6 +128,7 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
         seed: int = 0,
         signing_key: SigningKey | None = None,
         estimate_lag: float = 0.0,
+        ideal: bool = False,
     ) -> None:
         if not 1 <= int(system_id) <= 250:
             raise SimAutopilotError(f"system id must be within 1..250, got {system_id}")
@@ -153,6 +158,7 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
             quad, self._base_gains, battery=battery, position=self._start, yaw=yaw, soc=soc, seed=seed
         )
         self.sim.estimator.output_lag_s = float(estimate_lag)
+        self.ideal = bool(ideal)
         self.timesync = TimesyncFilter()
         self.statustexts: deque[tuple[int, str]] = deque(maxlen=200)
         self._command_history = {}
@@ -173,6 +179,11 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
             )
         except (OSError, ValueError, MavlinkLinkError) as exc:
             raise SimAutopilotError(f"cannot open MAVLink connection {connection!r}: {exc}") from exc
+        port = getattr(self.conn, "port", None)
+        if connection.startswith("udpout:") and port is not None:
+            # The link a simulated vehicle stands for (a serial line, a radio, a companion's UART) has one
+            # peer: a connected socket reads only the gateway's datagrams, from no other address.
+            port.connect(self.conn.destination_addr)
         if not type(self.conn.mav).__module__.startswith("pymavlink.dialects.v20."):
             self.conn.close()
             raise SimAutopilotError("pymavlink was loaded for MAVLink 1; import this module before pymavlink")

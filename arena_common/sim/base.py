@@ -129,6 +129,7 @@ class AutopilotState:
     _home_yaw: float
     _home_set: bool
     _armed_at: float
+    ideal: bool  # True: the idealised autopilot (instant takeoff phases, Hold where the mode started)
     _flew_since_arming: bool
     _landed_since: float
     _sp_times: deque[float]

@@ -25,7 +25,7 @@ PX4 v1.16 SITL (see docs/px4.md) and reproduced here:
 from __future__ import annotations
 
 import math
-from typing import Final
+from typing import Any, Final
 
 from arena_common.mavlink import px4
 from arena_common.sim.base import AutopilotState, Vec3
@@ -35,6 +35,9 @@ from arena_common.sim.telemetry import GCS_TIMEOUT_S
 __all__ = ["ACTION_MODES", "MODE_LABELS", "FlightMixin"]
 
 NAN = math.nan
+#: s: after PX4 v1.16 SITL reports Hold at the end of a takeoff (NAV_MC_ALT_RAD short of the altitude), its
+#: altitude setpoint closes the rest by a factor 0.65 a second (vehicle_local_position_setpoint, ULog).
+TAKEOFF_APPROACH_TAU = 2.3
 
 #: Failsafe action → the (main, sub) mode PX4 reports while taking it.
 ACTION_MODES: Final[dict[str, tuple[int, int]]] = {
@@ -367,10 +370,49 @@ class FlightMixin(AutopilotState):
         speed = self._cruise_speed if self._cruise_speed > 0 else float(self.params.get("MPC_XY_CRUISE"))
         return min(speed, float(self.params.get("MPC_XY_VEL_MAX")))
 
+    def _braking_point(self) -> Vec3:
+        """Where PX4's Hold stops a moving multicopter: the estimate moved along its horizontal course by
+        PX4's braking distance v·(v / (2·MPC_ACC_HOR) + 0.6 s) (navigator ``calculate_breaking_stop``,
+        ``computeBrakingDistanceFromVelocity`` with a delay acceleration of 0.6·MPC_JERK_AUTO)."""
+        est = self.sim.estimator
+        p, v = est.out_position, est.out_velocity
+        speed = math.hypot(v[0], v[1])
+        if self.ideal or self.sim.landed or speed < 1e-3:
+            return p
+        jerk = float(self.params.get("MPC_JERK_AUTO"))
+        dist = speed * (speed / (2.0 * float(self.params.get("MPC_ACC_HOR"))) + 0.6 * jerk / jerk)
+        return (p[0] + v[0] / speed * dist, p[1] + v[1] / speed * dist, p[2])
+
+    def _brake_setpoint(self, t: float, nav: dict[str, Any]) -> Setpoint:
+        """The way to the braking point: on at the entry speed for 0.6 s, then slowing at MPC_ACC_HOR
+        (the profile behind PX4's braking distance), with its velocity as feed-forward."""
+        t0, p0, (vn, ve) = nav["brake"]
+        speed = math.hypot(vn, ve)
+        acc = float(self.params.get("MPC_ACC_HOR"))
+        tau = max(0.0, t - t0)
+        if tau <= 0.6:
+            s, v = speed * tau, speed
+        else:
+            dt = min(tau - 0.6, speed / acc)
+            s, v = speed * 0.6 + speed * dt - 0.5 * acc * dt * dt, speed - acc * dt
+        if v <= 0.0:
+            nav["braked"] = True
+            return Setpoint.hold(nav["hold"], nav["yaw"])
+        un, ue = vn / speed, ve / speed
+        hold = nav["hold"]
+        return Setpoint(
+            position=(p0[0] + un * s, p0[1] + ue * s, hold[2]), velocity=(un * v, ue * v, 0.0), yaw=nav["yaw"]
+        )
+
     def _enter_nav(self) -> None:
         """Initialise the behaviour of the current (reported) mode from the present estimate."""
         est = self.sim.estimator
         self._nav = {"mode": self.mode, "hold": est.out_position, "yaw": est.yaw, "phase": "return"}
+        if self.mode == (px4.MAIN_AUTO, px4.AUTO_LOITER):
+            self._nav["hold"] = self._braking_point()
+            v = est.out_velocity
+            if self._nav["hold"] != est.out_position:  # braking: a smooth path to the point, as PX4's
+                self._nav["brake"] = (self.clock.now(), est.out_position, (v[0], v[1]))
         if self.mode == (px4.MAIN_AUTO, px4.AUTO_RTL):
             home, p = self._home, est.out_position
             alt = p[2]
@@ -419,11 +461,23 @@ class FlightMixin(AutopilotState):
                 hold = nav["hold"]
                 target = (hold[0], hold[1], self._home[2] - alt)
                 nav["target"] = target
-            sim.setpoint = Setpoint.hold(target, nav["yaw"])
-            if abs(est.out_position[2] - target[2]) < 0.1 and not sim.landed:
+            if self.ideal:
+                sim.setpoint = Setpoint.hold(target, nav["yaw"])
+                done = abs(est.out_position[2] - target[2]) < 0.1
+            else:  # PX4: on the ground until spool-up and thrust ramp are over; Hold NAV_MC_ALT_RAD short
+                start = nav.setdefault("tko_start", t)
+                lift = max(start, self._armed_at + float(self.params.get("COM_SPOOLUP_TIME")))
+                lift += float(self.params.get("MPC_TKO_RAMP_T"))
+                sim.setpoint = Setpoint.hold(target if t >= lift else nav["hold"], nav["yaw"])
+                done = t >= lift and abs(est.out_position[2] - target[2]) < float(
+                    self.params.get("NAV_MC_ALT_RAD")
+                )
+            if done and not sim.landed:
                 self._user_mode = (px4.MAIN_AUTO, px4.AUTO_LOITER)
                 self._enter_nav()
                 self._nav["hold"] = target
+                if not self.ideal:  # PX4's Hold then approaches the altitude slowly (docs/px4.md)
+                    self._nav["approach"] = (t, est.out_position[2] - target[2])
         elif mode == (px4.MAIN_AUTO, px4.AUTO_LAND):
             sim.setpoint = self._land_setpoint(nav["hold"], nav["yaw"])
         elif mode == (px4.MAIN_AUTO, px4.AUTO_RTL):
@@ -443,6 +497,13 @@ class FlightMixin(AutopilotState):
             goal = nav.get("goto")
             if goal is not None:
                 sim.setpoint = self._carrot(goal, nav.get("goto_yaw", nav["yaw"]))
+            elif "brake" in nav and not nav.get("braked"):
+                sim.setpoint = self._brake_setpoint(t, nav)
+            elif "approach" in nav:  # after a takeoff: the altitude approached exponentially
+                t0, dz = nav["approach"]
+                hold = nav["hold"]
+                z = hold[2] + dz * math.exp(-(t - t0) / TAKEOFF_APPROACH_TAU)
+                sim.setpoint = Setpoint.hold((hold[0], hold[1], z), nav["yaw"])
             else:
                 sim.setpoint = Setpoint.hold(nav["hold"], nav["yaw"])
 
