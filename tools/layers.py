@@ -13,6 +13,7 @@ sibling of its layer (the gateway does not import the client, nor the simulator 
     runtime     what a process needs: service runtime, options, supervisor, the PX4 SITL launcher
     pipeline    the vision filter the transform and downsampler share
     gateway | client | recording | sim      (siblings: none imports another)
+    ros2        ROS 2 over rmw_zenoh: the client for commands, recordings for the MCAP export
     cli
 
 Also: no library module imports ``services``, ``bench``, ``tools`` or ``tests``; nothing but
@@ -38,6 +39,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("runtime",),
     ("pipeline",),
     ("gateway", "client", "recording", "sim"),
+    ("ros2",),
     ("cli",),
 )
 RANK = {pkg: i for i, group in enumerate(LAYERS) for pkg in group}

@@ -149,6 +149,7 @@ def grants(cfg: ArenaConfig, spec: SecuritySpec) -> dict[str, list[tuple[str, li
             ("ingress", ["declare_queryable", "reply"], serve),
             ("ingress", ["query"], [keys.TIME]),
         ]
+        g += _ros2_grants(cfg, h, h in commanders)
         if h in commanders:
             g += [
                 ("ingress", ["query"], ["arena/*/cmd", "arena/sys/rec/*"]),
@@ -156,6 +157,31 @@ def grants(cfg: ArenaConfig, spec: SecuritySpec) -> dict[str, list[tuple[str, li
             ]
         out[h] = g
     return out
+
+
+#: ROS 2 over rmw_zenoh (domain 0): data under ``0/…``, graph tokens under the hermetic ``@ros2_lv/0/…``.
+ROS2_KEYS = ["0/**", "@ros2_lv/0/**"]
+
+
+def _ros2_grants(cfg: ArenaConfig, host: str, commander: bool) -> list[tuple[str, list[str], list[str]]]:
+    """What a host needs for ROS 2 (docs/ros2.md): the ``ros2`` host publishes every topic and answers the
+    late-joiner caches; any host's ROS 2 nodes read them and declare their own graph tokens; only
+    command hosts' ROS 2 nodes may send ``goto`` and ``cmd_vel``."""
+    g = [
+        ("egress", [*_READ_EGRESS, "query"], ROS2_KEYS),
+        ("ingress", _READ_INGRESS, ROS2_KEYS),
+        ("ingress", ["liveliness_token"], ["@ros2_lv/0/**"]),
+        ("ingress", ["query"], ["0/**"]),
+    ]
+    if "ros2" in cfg.hosts[host].services:
+        g += [
+            ("ingress", ["put", "delete"], ["0/**"]),
+            ("ingress", ["liveliness_token"], ["0/**"]),  # the advanced publishers' cache tokens
+            ("ingress", ["declare_queryable", "reply"], ["0/**"]),
+        ]
+    elif commander:
+        g.append(("ingress", ["put", "delete"], ["0/arena/*/goto/**", "0/arena/*/cmd_vel/**"]))
+    return g
 
 
 def access_control(cfg: ArenaConfig, spec: SecuritySpec) -> dict[str, Any]:

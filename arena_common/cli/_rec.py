@@ -248,8 +248,25 @@ def export_cmd(
     file: FileArg,
     fmt: Annotated[str, typer.Option("--format", "-f", help="csv or parquet.")] = "csv",
     output: Annotated[Path, typer.Option("--output", "-o", help="Directory of the tables.")] = Path("export"),
+    ros2: Annotated[
+        bool,
+        typer.Option(
+            "--ros2",
+            help="Write a ROS 2 MCAP instead (ros2msg schemas, CDR): <output>/<name>.ros2.mcap, or --output "
+            "FILE.mcap; for ros2 bag play, Foxglove, PlotJuggler (docs/ros2.md).",
+        ),
+    ] = False,
 ) -> None:
-    """One table per key, nested fields flattened (p.0, p.1, p.2…), with time columns."""
+    """One table per key, nested fields flattened (p.0, p.1, p.2…), with time columns; or a ROS 2 bag."""
+    if ros2:
+        from arena_common.ros2.export import export_ros2  # rosbags loads only when asked for
+
+        try:
+            target, count = export_ros2(file, output)
+        except (ArenaError, OSError) as exc:
+            raise _fail(exc) from None
+        typer.echo(f"{target} ({count} ROS 2 messages)")
+        return
     try:
         written = recording.export(file, output, fmt)
     except (ArenaError, OSError) as exc:

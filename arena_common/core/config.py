@@ -30,7 +30,7 @@ from arena_common.core import keys
 from arena_common.core.endpoints import endpoint_host, is_loopback, mirror_connection, udp_listen_port
 from arena_common.core.errors import ConfigError, InvalidName
 
-Service = Literal["router", "mocap", "transform", "recorder", "sim"]
+Service = Literal["router", "mocap", "transform", "recorder", "sim", "ros2"]
 VehicleService = Literal["downsampler", "gateway"]
 ZenohMode = Literal["peer", "client", "router"]
 SERVICES: tuple[Service, ...] = get_args(Service)

@@ -1,0 +1,124 @@
+"""ROS 2 bridge-less view of the arena: its keys as rmw_zenoh topics, ROS 2 commands through the client's
+safety path (:mod:`arena_common.ros2`; docs/ros2.md).
+
+One per arena (or one per host with ``--vehicle`` for that host's vehicles).  ROS 2 nodes on
+``rmw_zenoh_cpp`` connected to the arena's router see ``/arena/<d>/pose``, ``/arena/<d>/odom``,
+``/tf``, ``/tf_static``, ``/arena/<d>/battery``, ``/diagnostics`` and ``/rosout``, and command with
+``/arena/<d>/goto`` and ``/arena/<d>/cmd_vel``.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from typing import Annotated
+
+import typer
+
+from arena_common.bus.session import BusOptions
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError
+from arena_common.ros2.bridge import Bridge, BridgeOptions
+from arena_common.runtime.options import (
+    ConfigOpt,
+    ConnectOpt,
+    HostOpt,
+    ListenOpt,
+    LogOpt,
+    ModeOpt,
+    ZConfigOpt,
+    bus_options,
+    load_config,
+)
+from arena_common.runtime.service import running, setup_logging
+
+SERVICE = "ros2"
+
+
+def default_domain() -> int:
+    """``$ROS_DOMAIN_ID``, else 0 (what rmw_zenoh reads)."""
+    try:
+        return int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+    except ValueError:
+        raise ConfigError(f"ROS_DOMAIN_ID must be a number, not {os.environ['ROS_DOMAIN_ID']!r}") from None
+
+
+def main(
+    cfg: ArenaConfig,
+    options: BusOptions | None = None,
+    *,
+    host: str | None = None,
+    stop: threading.Event | None = None,
+    domain: int | None = None,
+    vehicles: tuple[str, ...] = (),
+    node: str = "arena_bridge",
+    commands: bool = True,
+) -> None:
+    """Serve the arena to ROS 2 until ``stop`` is set (or SIGINT/SIGTERM)."""
+    dom = default_domain() if domain is None else domain
+    if not 0 <= dom <= 232:
+        raise ConfigError(f"ROS domain {dom} outside 0..232")
+    with running(SERVICE, cfg, options, host=host, stop=stop) as svc:
+        bridge = Bridge(
+            cfg,
+            svc.bus,
+            BridgeOptions(domain=dom, node=node, vehicles=vehicles, commands=commands),
+            src=f"{svc.host}/ros2",
+            stats=svc.stats,
+            log=svc.log,
+        )
+        svc.log.info(
+            "ROS 2 domain %d, node /%s (zid %s): %d vehicle(s)%s",
+            dom,
+            node,
+            bridge.node.zid,
+            len(bridge.vehicles),
+            ", commands from ROS 2 taken" if commands else "",
+        )
+        try:
+            while not svc.sleep(0.5):
+                pass
+        finally:
+            bridge.close()
+
+
+def cli(
+    config: ConfigOpt = None,
+    mode: ModeOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zconfig: ZConfigOpt = None,
+    host: HostOpt = None,
+    domain: Annotated[
+        int | None, typer.Option("--domain", help="ROS domain id (default: $ROS_DOMAIN_ID, else 0).")
+    ] = None,
+    vehicle: Annotated[
+        list[str] | None, typer.Option("--vehicle", "-v", help="Serve only this vehicle (repeatable).")
+    ] = None,
+    node: Annotated[str, typer.Option("--node", help="The ROS 2 node's name.")] = "arena_bridge",
+    no_commands: Annotated[
+        bool, typer.Option("--no-commands", help="Publish only; take no goto or cmd_vel from ROS 2.")
+    ] = False,
+    log_level: LogOpt = "INFO",
+) -> None:
+    """The arena as ROS 2 topics for rmw_zenoh (poses, odometry, TF, battery, diagnostics, /rosout), and
+    goto / cmd_vel commands from ROS 2 under the arena's safety rules."""
+    setup_logging(log_level)
+    cfg = load_config(config)
+    try:
+        main(
+            cfg,
+            bus_options(mode, connect, listen, zconfig),
+            host=host,
+            domain=domain,
+            vehicles=tuple(vehicle or ()),
+            node=node,
+            commands=not no_commands,
+        )
+    except ConfigError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+if __name__ == "__main__":
+    typer.run(cli)
