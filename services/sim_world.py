@@ -25,6 +25,7 @@ from arena_common.runtime.options import (
     ModeOpt,
     ZConfigOpt,
     bus_options,
+    chosen_config,
     load_config,
 )
 from arena_common.runtime.supervisor import Supervisor, sim_world_plan, supervise
@@ -55,7 +56,7 @@ def cli(
     log_level: LogOpt = "INFO",
 ) -> None:
     """The simulated world: simulated PX4 vehicles and a Motive emulator, each its own process."""
-    cfg = load_config(config_arg or config)
+    cfg = load_config(chosen_config(config_arg, config))
     main(cfg, bus_options(mode, connect, listen, zconfig), host=host, log_level=log_level)
 
 

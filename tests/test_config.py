@@ -118,11 +118,14 @@ def test_px4_sitl_link_and_system_id_follow_from_the_instance(tmp_path: Path) ->
 
 
 def test_px4_sitl_accepts_the_matching_link_and_id_and_boot_params(tmp_path: Path) -> None:
-    text = SITL.replace(
-        "px4_instance = 3",
-        'px4_instance = 3\nmavlink = "udpin:0.0.0.0:14543"\nsystem_id = 4\n'
-        "px4_params = { EKF2_EVP_NOISE = 0.05, EKF2_EV_CTRL = 15 }",
-    ) + "[security]\ninsecure = true\n"  # 0.0.0.0: PX4 SITL's port on every interface, unsigned
+    text = (
+        SITL.replace(
+            "px4_instance = 3",
+            'px4_instance = 3\nmavlink = "udpin:0.0.0.0:14543"\nsystem_id = 4\n'
+            "px4_params = { EKF2_EVP_NOISE = 0.05, EKF2_EV_CTRL = 15 }",
+        )
+        + "[security]\ninsecure = true\n"
+    )  # 0.0.0.0: PX4 SITL's port on every interface, unsigned
     v = config.load(write(tmp_path, text)).vehicle("d1")
     assert v.mavlink == "udpin:0.0.0.0:14543" and v.system_id == 4
     assert v.px4_params == {"EKF2_EVP_NOISE": 0.05, "EKF2_EV_CTRL": 15}

@@ -12,8 +12,9 @@ check``, ``arena config check``, ``arena up lab.toml --host NAME`` on each compu
 The pilots' program flies c1 from the ground computer (the only ``command_hosts`` entry).  The outsider
 lists every listening socket of the arena's computers (``ss``) and tries each: Zenoh with no credentials
 (plain and TLS), a certificate of another CA or a wrong password, a lab identity that is no host of the
-config (``visitor``), a non-commanding host's identity (a researcher's ``laptop``, added to the config); unsigned, wrongly signed and replayed
-MAVLink to every UDP port.  Nothing may arm, move, spoof a reading or divert a link, and c1 keeps flying.
+config (``visitor``), a non-commanding host's identity (a researcher's ``laptop``, added to the
+config); unsigned, wrongly signed and replayed MAVLink to every UDP port.  Nothing may arm, move, spoof
+a reading or divert a link, and c1 keeps flying.
 """
 
 from __future__ import annotations

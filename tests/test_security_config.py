@@ -64,7 +64,9 @@ def test_nothing_listens_beyond_loopback_unauthenticated_unless_the_config_says_
     # Signed, or pinned to the autopilot's address: the link is authenticated (or cannot be diverted).
     parse(mavlink="udpin:0.0.0.0:14550", extra='signing_key_file = "c1.key"')
     parse(mavlink="udpin:0.0.0.0:14550", extra='mavlink_peer = "192.168.1.41:14555"')
-    with pytest.raises(ConfigError, match=r"vehicles.c1.gcs: expected a ground-station link on loopback only"):
+    with pytest.raises(
+        ConfigError, match=r"vehicles.c1.gcs: expected a ground-station link on loopback only"
+    ):
         parse(extra='gcs = "udpin:0.0.0.0:14550"')
     parse(extra='gcs = "udpout:192.168.1.50:14550"')  # sends to the GCS; answers come from where it sends
     insecure = parse(listen="tcp/0.0.0.0:7447", address="192.168.1.20", extra="[security]\ninsecure = true")

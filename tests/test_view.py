@@ -157,12 +157,20 @@ def test_view_streams_the_live_scene_to_a_websocket_client(
             with connect(f"ws://127.0.0.1:{view.port}", subprotocols=[LEGACY], open_timeout=10) as ws:
                 assert ws.subprotocol == LEGACY
                 legacy = Client(ws)
-                wait_for(
-                    lambda: legacy.pump(0.2) or "/arena/d1/tf" in legacy.channels, 20.0, 0.0, "advertised"
-                )
+
+                def advertised() -> bool:
+                    legacy.pump(0.2)
+                    return "/arena/d1/tf" in legacy.channels
+
+                wait_for(advertised, 20.0, 0.0, "advertised")
                 assert legacy.server_info.get("name") == "Flying Arena"
                 legacy.subscribe(["/arena/d1/tf"])
-                wait_for(lambda: legacy.pump(0.2) or legacy.received.get("/arena/d1/tf"), 20.0, 0.0, "data")
+
+                def data() -> bool:
+                    legacy.pump(0.2)
+                    return bool(legacy.received.get("/arena/d1/tf"))
+
+                wait_for(data, 20.0, 0.0, "data")
             with pytest.raises(InvalidStatus):  # a subprotocol that is no name of this protocol
                 connect(f"ws://127.0.0.1:{view.port}", subprotocols=[Subprotocol("x.v1")], open_timeout=10)
         finally:

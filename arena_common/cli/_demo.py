@@ -1,8 +1,15 @@
 """``arena demo``: bring up the simulated arena, fly every vehicle in formation, show live status.
 
 What ``make run`` runs.  The arena is started by the supervisor (``arena up``) as a child process whose
-logs go to a file, so the terminal shows the live status table; Ctrl-C lands the vehicles and stops
-everything.
+logs go to a file, so the terminal shows the live status table.
+
+Stopping: Ctrl-C, SIGTERM and a closed terminal (SIGHUP) all stop the demo the same way
+(:class:`~arena_common.runtime.process.StopSignals`): the flight program is abandoned, every vehicle in
+the air is told to land and the demo waits until each one is on the ground and disarmed (at most
+``--land-timeout`` seconds), then stops the arena (the supervisor stops its services).  A second Ctrl-C
+(or SIGTERM) skips the wait and has the supervisor kill its services at once; a second SIGHUP does not
+(a closing terminal and its shell each send one).  No thread of the demo keeps the
+process alive once it is done: each vehicle's action runs in a daemon thread, left behind on a stop.
 """
 
 from __future__ import annotations
@@ -15,6 +22,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Annotated
 
@@ -25,28 +33,96 @@ from rich.text import Text
 
 from arena_common.cli._flight import Snapshot
 from arena_common.cli._globals import config_file as global_config_file
-from arena_common.client import Arena, Swarm, Vehicle
+from arena_common.client import Arena, Vehicle
+from arena_common.client.types import FlightMode, LandedState
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ArenaError
 from arena_common.runtime.options import load_config
-from arena_common.runtime.process import child_setup
+from arena_common.runtime.process import StopSignals, child_setup
 
 console = Console()
 WATCH_3D = (
     "watch in 3D: `arena view` in another terminal, then Foxglove → Open connection → "
     "ws://127.0.0.1:8765 with the layout deploy/foxglove/arena.json (docs/viewer.md)"
 )
+LAND_TIMEOUT = 10.0  # s to wait for the vehicles to land once the demo is asked to stop
+STOP_TIMEOUT = 20.0  # s for the supervisor to stop its services before it is killed
+RESEND_LAND = 2.0  # s between land orders to a vehicle still flying (not landing) while stopping
+
+
+class Stopped(ArenaError):
+    """The demo was asked to stop (a signal) while the flight program ran."""
+
+
+class Say:
+    """The demo's messages: kept for the live view (the last few are shown under the table) and printed
+    as they come when the output is not a terminal (a log file, a pipe) or once :attr:`echo` is set (the
+    stop: on a terminal, above the live view, where no terminal height hides them)."""
+
+    def __init__(self, out: Console) -> None:
+        self.out = out
+        self.lines: list[str] = []
+        self.echo = not out.is_terminal
+
+    def __call__(self, text: str) -> None:
+        self.lines.append(text)
+        if self.echo:
+            with contextlib.suppress(OSError, ValueError):  # the output may be gone
+                self.out.print(text)
+
+    def last(self, n: int = 6) -> list[str]:
+        """The last ``n`` messages."""
+        return self.lines[-n:]
+
+
+def together(vehicles: Sequence[Vehicle], action: Callable[[Vehicle], object], stop: threading.Event) -> None:
+    """Run ``action(vehicle)`` on every vehicle at once and wait for all; raise the first error.
+
+    Each runs in a daemon thread: on ``stop`` this raises :class:`Stopped` within 0.1 s and leaves them
+    behind (they end at their own timeouts and never keep the process alive, unlike a
+    ``concurrent.futures`` pool, whose workers the interpreter joins at exit).
+    """
+    errors: list[tuple[str, BaseException]] = []
+
+    def run(v: Vehicle) -> None:
+        try:
+            action(v)
+        except BaseException as exc:  # reported by the caller
+            errors.append((v.name, exc))
+
+    threads = [threading.Thread(target=run, args=(v,), name=f"demo:{v.name}", daemon=True) for v in vehicles]
+    for t in threads:
+        t.start()
+    for t in threads:
+        while t.is_alive():
+            if stop.is_set():
+                raise Stopped("stopped")
+            t.join(0.1)
+    if stop.is_set():
+        raise Stopped("stopped")
+    if len(errors) == 1:
+        raise errors[0][1]
+    if errors:
+        raise ArenaError("; ".join(f"{name}: {exc}" for name, exc in errors)) from errors[0][1]
 
 
 def formation_flight(
-    swarm: Swarm, say: list[str], height: float = 1.0, radius: float = 1.0, steps: int = 6
+    vehicles: Sequence[Vehicle],
+    say: Callable[[str], None],
+    stop: threading.Event,
+    height: float = 1.0,
+    radius: float = 1.0,
+    steps: int = 6,
 ) -> None:
-    """Arm, take off, fly a rotating triangle (or circle) formation around the arena centre, land."""
-    names = [v.name for v in swarm]
-    say.append("arming " + ", ".join(names))
-    swarm.arm()
-    say.append(f"taking off to {height} m")
-    swarm.takeoff(height)
+    """Arm, take off, fly a rotating triangle (or circle) formation around the arena centre, land.
+
+    :class:`Stopped` as soon as ``stop`` is set (no further command is sent then).
+    """
+    names = [v.name for v in vehicles]
+    say("arming " + ", ".join(names))
+    together(vehicles, lambda v: v.arm(), stop)
+    say(f"taking off to {height} m")
+    together(vehicles, lambda v: v.takeoff(height), stop)
     for step in range(steps + 1):
         angle = step * 2 * math.pi / steps
         targets = {
@@ -56,40 +132,107 @@ def formation_flight(
             )
             for i, n in enumerate(names)
         }
-        say.append(f"formation step {step}/{steps}")
+        say(f"formation step {step}/{steps}")
 
         def fly(v: Vehicle, t: dict[str, tuple[float, float]] = targets) -> None:
             v.goto(t[v.name][0], t[v.name][1], -height, yaw=0.0, tolerance=0.2)
 
-        swarm.run(fly)
-    say.append("landing")
-    swarm.land()
-    say.append("landed: demo complete")
+        together(vehicles, fly, stop)
+    say("landing")
+    together(vehicles, lambda v: v.land(), stop)
+    say("landed: demo complete")
 
 
-def _wait_ready(
-    arena: Arena, cfg: ArenaConfig, stop: threading.Event, say: list[str], timeout: float
-) -> bool:
+def _wait_ready(arena: Arena, cfg: ArenaConfig, stop: threading.Event, say: Say, timeout: float) -> bool:
     names = list(cfg.vehicles)
     deadline = time.monotonic() + timeout
-    say.append(f"waiting for {', '.join(names)}: gateways alive and vision fused")
+    say(f"waiting for {', '.join(names)}: gateways alive and vision fused")
     while not stop.is_set() and time.monotonic() < deadline:
         vs = [arena.vehicle(n) for n in names]
         if all(v.state is not None and v.link and v.state.vis_fused and v.state.setup_ok for v in vs):
-            say.append("all vehicles ready")
+            say("all vehicles ready")
             return True
-        time.sleep(0.3)
+        stop.wait(0.3)
     return False
 
 
-def _stop(up: subprocess.Popen[bytes]) -> None:
-    """Stop the supervisor and everything it started (Ctrl-C first, then SIGKILL)."""
-    if up.poll() is None:
+def _on_ground(v: Vehicle) -> bool:
+    return v.landed == LandedState.ON_GROUND and not v.armed
+
+
+def _flies_on(v: Vehicle) -> bool:
+    """In the air and not landing (an order of the abandoned flight program came after the land)."""
+    return v.landed in (LandedState.IN_AIR, LandedState.TAKEOFF) and v.mode != FlightMode.AUTO_LAND
+
+
+def land_all(
+    arena: Arena,
+    vehicles: Sequence[Vehicle],
+    say: Say,
+    hurry: threading.Event,
+    timeout: float,
+    refresh: Callable[[], None],
+) -> None:
+    """Land every vehicle in the air and wait until each is on the ground and disarmed, at most
+    ``timeout`` seconds (``hurry``: the order is given, not waited for); says what it does.
+
+    The land order is the arena's estop (every gateway lands its vehicle at once, whatever it was
+    doing), sent again every :data:`RESEND_LAND` seconds while a vehicle still flies in another mode than
+    AUTO.LAND (an order of the abandoned flight program may have reached its gateway after the first).
+    """
+    flying = [v for v in vehicles if v.armed]
+    if not flying:
+        say("no vehicle in the air")
+        return
+    names = ", ".join(v.name for v in flying)
+    say(f"landing {names}: waiting up to {timeout:.0f} s for them to be on the ground")
+    deadline = time.monotonic() + timeout
+    last_order: float | None = None
+    while True:
+        left = [v for v in flying if not _on_ground(v)]
+        if not left:
+            say(f"landed: {names}")
+            return
+        now = time.monotonic()
+        if last_order is None or (now - last_order >= RESEND_LAND and any(map(_flies_on, left))):
+            try:  # the first order goes out whatever happens next
+                arena.estop(reason="demo stopping: land")
+            except ArenaError as exc:
+                say(f"[red]cannot order the landing: {exc}[/]")
+                return
+            last_order = now
+        in_air = ", ".join(v.name for v in left)
+        if hurry.is_set():
+            say(f"[red]stopping at once (signalled again): {in_air} still in the air, landing[/]")
+            return
+        if now >= deadline:
+            say(f"[red]{in_air} still in the air after {timeout:.0f} s: stopping anyway[/]")
+            return
+        refresh()
+        hurry.wait(0.2)
+
+
+def _stop(up: subprocess.Popen[bytes], hurry: threading.Event, timeout: float = STOP_TIMEOUT) -> None:
+    """Stop the supervisor and everything it started: SIGINT (as Ctrl-C), a second SIGINT on ``hurry``
+    (it then kills its services at once), SIGKILL after ``timeout`` s (its services go with it: each one
+    dies with its parent)."""
+    if up.poll() is not None:
+        return
+    with contextlib.suppress(ProcessLookupError):
         os.killpg(up.pid, signal.SIGINT)
-        try:
-            up.wait(20)
-        except subprocess.TimeoutExpired:
+    deadline = time.monotonic() + timeout
+    hurried = False
+    while up.poll() is None and time.monotonic() < deadline:
+        if hurry.is_set() and not hurried:
+            hurried = True
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(up.pid, signal.SIGINT)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            up.wait(0.1)
+    if up.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
             os.killpg(up.pid, signal.SIGKILL)
+        with contextlib.suppress(subprocess.TimeoutExpired):
             up.wait(5)
 
 
@@ -102,79 +245,118 @@ def demo(
     ] = False,
     log: Annotated[Path, typer.Option(help="Where the arena's own logs go.")] = Path("arena-demo.log"),
     ready_timeout: Annotated[float, typer.Option(help="Seconds to wait for the arena to come up.")] = 90.0,
+    land_timeout: Annotated[
+        float, typer.Option(help="When stopped (Ctrl-C): seconds to wait for the vehicles to land.")
+    ] = LAND_TIMEOUT,
 ) -> None:
-    """Run the simulated arena from CONFIG and fly a formation demo with every vehicle, live status shown."""
+    """Run the simulated arena from CONFIG and fly a formation demo with every vehicle, live status shown.
+
+    Ctrl-C (or a closed terminal, or SIGTERM) lands the vehicles, waits for them to be on the ground
+    (at most --land-timeout s) and stops the arena; a second Ctrl-C stops everything at once.
+    """
     path = global_config_file(config_file)
     cfg = load_config(path)
     host = next(iter(cfg.hosts), None)
     if host is None:
         console.print(f"[red]error:[/] {path} names no host to run")
         raise typer.Exit(2)
+    stop = threading.Event()  # a signal: stop the flight, land, stop the arena
+    hurry = threading.Event()  # a second one: at once
+    with StopSignals(stop, again=lambda _signum: hurry.set()) as signals:
+        _run(cfg, path, host, log, once, ready_timeout, land_timeout, stop, hurry, signals)
+
+
+def _run(
+    cfg: ArenaConfig,
+    path: Path,
+    host: str,
+    log: Path,
+    once: bool,
+    ready_timeout: float,
+    land_timeout: float,
+    stop: threading.Event,
+    hurry: threading.Event,
+    signals: StopSignals,
+) -> None:
     logf = open(log, "ab")  # noqa: SIM115 - kept open for the child's lifetime
-    # A closed terminal (SIGHUP) or a kill (SIGTERM) ends the demo as Ctrl-C does: land, stop the arena.
-    # The supervisor runs in its own session (the terminal's signals reach the demo alone) and is told
-    # to stop (SIGTERM) should the demo die without stopping it.
-    for sig in (signal.SIGHUP, signal.SIGTERM):
-        signal.signal(sig, signal.default_int_handler)
+    # The supervisor runs in its own session (the terminal's signals reach the demo alone, which stops
+    # it in order) and is sent SIGTERM by the kernel should the demo die without stopping it.
     up = subprocess.Popen(
         [sys.executable, "-m", "arena_common.cli", "up", str(path), "--host", host],
         stdout=logf,
         stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
         start_new_session=True,
         preexec_fn=child_setup(os.getpid(), signal.SIGTERM),
     )
-    say: list[str] = [f"arena starting (pid {up.pid}, logs in {log})"]
-    stop = threading.Event()
+    say = Say(console)
+    say(f"arena starting (pid {up.pid}, logs in {log})")
     failed: list[BaseException] = []
     try:
         arena = Arena(cfg, name="arena-demo")
     except ArenaError as exc:
-        _stop(up)
+        _stop(up, hurry)
         logf.close()
         console.print(f"[red]error:[/] {exc} (see {log})")
         raise typer.Exit(1) from None
     snap = Snapshot(arena.bus)
+    vehicles = [arena.vehicle(n) for n in cfg.vehicles]
 
     def program() -> None:
         try:
             if not _wait_ready(arena, cfg, stop, say, ready_timeout):
+                if stop.is_set():
+                    return
                 raise ArenaError(f"the arena did not come up within {ready_timeout:.0f} s (see {log})")
-            formation_flight(arena.swarm(list(cfg.vehicles)), say)
+            formation_flight(vehicles, say, stop)
+        except Stopped:
+            pass
         except BaseException as exc:
             failed.append(exc)
-            say.append(f"[red]demo failed: {exc}[/]")
+            say(f"[red]demo failed: {exc}[/]")
 
     flight = threading.Thread(target=program, name="demo-flight", daemon=True)
     flight.start()
 
     def view() -> Group:
         snap.refresh()
-        return Group(snap.render(), Text.from_markup("\n".join(say[-6:])), Text(WATCH_3D, style="dim"))
+        return Group(snap.render(), Text.from_markup("\n".join(say.last())), Text(WATCH_3D, style="dim"))
+
+    live = Live(view(), console=console, auto_refresh=False)
+
+    def refresh() -> None:
+        with contextlib.suppress(OSError, ValueError):  # the terminal may be gone (SIGHUP)
+            live.update(view(), refresh=True)
 
     try:
-        with Live(view(), console=console, refresh_per_second=2) as live:
-            while flight.is_alive() or not once:
-                if up.poll() is not None:
-                    say.append(f"[red]the supervisor exited ({up.returncode}); see {log}[/]")
-                    failed.append(ArenaError("supervisor exited"))
-                    break
-                time.sleep(0.5)
-                live.update(view())
-            live.update(view())
-    except KeyboardInterrupt:
-        with contextlib.suppress(OSError):  # the terminal may be gone
-            console.print("stopping: landing every vehicle")
-        stop.set()
-        try:
-            arena.estop(reason="demo interrupted")
-            time.sleep(0.3)
-        except ArenaError:
-            pass
+        with contextlib.suppress(OSError, ValueError):
+            live.start(refresh=True)
+        while (flight.is_alive() or not once) and not stop.is_set():
+            if up.poll() is not None:
+                say(f"[red]the supervisor exited ({up.returncode}); see {log}[/]")
+                failed.append(ArenaError("supervisor exited"))
+                break
+            stop.wait(0.5)
+            refresh()
+        if signals.count:
+            name = signal.Signals(signals.received[0]).name
+            say.echo = True
+            say(f"stopping ({name}): every vehicle lands, then the arena stops")
+            refresh()
+            land_all(arena, vehicles, say, hurry, land_timeout, refresh)
     finally:
         stop.set()
+        say("stopping the arena" + (" at once" if hurry.is_set() else ""))
+        refresh()
+        with contextlib.suppress(OSError, ValueError):
+            live.stop()
+            if not console.is_terminal:
+                console.line()  # after the last render
         arena.close()
-        _stop(up)
+        _stop(up, hurry)
         logf.close()
+        with contextlib.suppress(OSError, ValueError):
+            console.print(f"arena stopped (supervisor {up.returncode})")
     if failed:
         raise typer.Exit(1)
 

@@ -45,6 +45,7 @@ SERVICE_UNITS: dict[str, tuple[str, ...]] = {
     "transform": ("arena-transform.service",),
     "recorder": ("arena-recorder.service",),
     "sim": ("arena-sim-vehicle.service", "arena-sim-mocap.service"),
+    "ros2": ("arena-ros2.service",),
 }
 VEHICLE_UNITS: dict[str, str] = {
     "downsampler": "arena-downsampler@.service",
@@ -252,7 +253,9 @@ def up(
     taken = taken_ports(cfg, h.name)
     if taken:
         for p in taken:
-            typer.echo(f"error: {cfg.path}: {p} is taken by another program (ss -lntup shows which)", err=True)
+            typer.echo(
+                f"error: {cfg.path}: {p} is taken by another program (ss -lntup shows which)", err=True
+            )
         typer.echo("error: nothing started; free the port(s) or change the config field(s) named", err=True)
         raise typer.Exit(2)
     stop = threading.Event()

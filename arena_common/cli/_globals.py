@@ -2,7 +2,8 @@
 
 ``arena --config lab.toml status`` and ``arena status --config lab.toml`` both work: :class:`Group` moves
 these options in front of the sub-command (:func:`hoist`) before typer parses the line.  Commands read them with
-:func:`config`, :func:`config_file` and :func:`bus`.
+:func:`config`, :func:`config_file` and :func:`bus`; a command that runs another program (``arena run``,
+``arena sim``) hands them on as a command line, :meth:`Globals.argv`.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, overload
 
+import typer
 from typer.core import TyperGroup
 
 from arena_common.bus.session import BusOptions
@@ -22,6 +24,7 @@ from arena_common.runtime.options import (
     ModeOpt,
     ZConfigOpt,
     bus_options,
+    chosen_config,
     config_path,
     load_config,
 )
@@ -50,6 +53,23 @@ class Globals:
     listen: tuple[str, ...] = ()
     zconfig: Path | None = None
 
+    def argv(self) -> list[str]:
+        """These options as a command line (long forms), for whatever runs the command: ``arena run`` and
+        ``arena sim`` hand them to their service this way, so ``arena sim mocap -c lab.toml`` and
+        ``python -m services.sim_mocap -c lab.toml`` are one command line."""
+        args: list[str] = []
+        if self.config is not None:
+            args += ["--config", str(self.config)]
+        if self.mode is not None:
+            args += ["--mode", self.mode]
+        for endpoint in self.connect:
+            args += ["--connect", endpoint]
+        for endpoint in self.listen:
+            args += ["--listen", endpoint]
+        if self.zconfig is not None:
+            args += ["--zconfig", str(self.zconfig)]
+        return args
+
 
 _current: Globals | None = None  # set by the callback for the command being run
 
@@ -63,6 +83,12 @@ def options(
 ) -> None:
     """Flying Arena: motion capture to PX4 vehicles over Zenoh, in the lab or in simulation."""
     bus_options(mode, connect, listen, zconfig)  # checks --mode now, before any command runs
+    if config is not None:  # a file the user named is never dropped, whatever the command does with it
+        try:
+            config.open("rb").close()
+        except OSError as exc:
+            typer.echo(f"error: {config}: cannot read: {exc.strerror or exc}", err=True)
+            raise typer.Exit(2) from None
     global _current
     _current = Globals(config, mode, tuple(connect or ()), tuple(listen or ()), zconfig)
 
@@ -73,8 +99,9 @@ def current() -> Globals:
 
 
 def config_file(path: Path | str | None = None) -> Path:
-    """The config file: ``path`` (a command's positional argument) else ``--config`` else the default."""
-    return config_path(path or current().config)
+    """The config file: ``path`` (a command's positional argument) else ``--config`` else the default
+    (two different files named: an error, status 2)."""
+    return config_path(chosen_config(path, current().config))
 
 
 @overload
@@ -82,8 +109,9 @@ def config(required: Literal[True] = True, path: Path | str | None = None) -> Ar
 @overload
 def config(required: bool, path: Path | str | None = None) -> ArenaConfig | None: ...
 def config(required: bool = True, path: Path | str | None = None) -> ArenaConfig | None:
-    """The arena config (exits with its error on stderr); ``required=False`` tolerates its absence."""
-    return load_config(path or current().config, required)
+    """The arena config (exits with its error on stderr, status 2); ``required=False`` tolerates the
+    absence of a default one, never of a file the command line names."""
+    return load_config(chosen_config(path, current().config), required)
 
 
 def bus(mode: str | None = None, listen: list[str] | None = None) -> BusOptions:

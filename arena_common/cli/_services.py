@@ -3,7 +3,9 @@
 Each service module under ``services/`` exposes ``cli`` (its typer entry, parsing arguments apart from
 its pure ``main``).  Modules are imported only when their command runs, so ``arena`` starts fast and one
 service's dependencies never stand in another's way; ``arena run gateway --help`` shows the service's
-own options.
+own options.  The shared options (``-c/--config``, ``--mode``, ``--connect``, ``--listen``, ``--zconfig``),
+before or after the sub-command, reach the service as its own (:meth:`Globals.argv
+<arena_common.cli._globals.Globals.argv>`).
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import importlib
 from collections.abc import Callable
 
 import typer
+
+from arena_common.cli import _globals
 
 RUN = {
     "mocap": (
@@ -27,6 +31,7 @@ RUN = {
     "recorder": ("services.recorder", "Telemetry recorder: keys → MCAP files."),
     "px4-sitl": ("services.px4_sitl", 'PX4 SITL autopilot of one autopilot = "px4-sitl" vehicle.'),
     "px4-truth": ("services.px4_truth", "PX4 SITL ground truth → arena/<drone>/truth (Motive emulator)."),
+    "ros2": ("services.ros2", "ROS 2 over rmw_zenoh: arena topics, TF, goto/cmd_vel (docs/ros2.md)."),
 }
 SIM = {
     "vehicle": ("services.sim_vehicle", "Simulated PX4 vehicles speaking MAVLink 2."),
@@ -36,14 +41,16 @@ SIM = {
 
 
 def _lazy(module_name: str) -> Callable[[typer.Context], None]:
-    """A command that imports ``module_name`` when run and hands it every argument."""
+    """A command that imports ``module_name`` when run and hands it every argument: its own, and the
+    shared ones (``--config``, ``--mode``…) that the ``arena`` group took in front of the sub-command
+    (:func:`~arena_common.cli._globals.hoist`)."""
 
     def command(ctx: typer.Context) -> None:
         module = importlib.import_module(module_name)
         app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
         app.command()(module.cli)
         typer.main.get_command(app).main(
-            args=list(ctx.args), prog_name=ctx.command_path, standalone_mode=True
+            args=[*_globals.current().argv(), *ctx.args], prog_name=ctx.command_path, standalone_mode=True
         )
 
     return command

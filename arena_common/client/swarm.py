@@ -13,8 +13,8 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
 from arena_common.core.errors import CommandError
@@ -56,14 +56,30 @@ class Swarm:
             if len(args) != len(self.vehicles):
                 raise ValueError(f"swarm arguments: {len(args)} given for {len(self.vehicles)} vehicles")
             per = [(a,) for a in args]
-        with ThreadPoolExecutor(max_workers=len(self.vehicles)) as pool:
-            futures = [pool.submit(action, v, *a) for v, a in zip(self.vehicles, per, strict=True)]
-            results, errors = [], []
-            for v, f in zip(self.vehicles, futures, strict=True):
-                try:
-                    results.append(f.result())
-                except Exception as exc:
-                    errors.append((v.name, exc))
+        # Daemon threads, not an executor: a program stopped (Ctrl-C) while they wait on a vehicle exits
+        # at once instead of joining them at interpreter exit.
+        outcome: list[tuple[bool, Any]] = [(False, None)] * len(self.vehicles)
+
+        def one(i: int, v: Vehicle, a: tuple[Any, ...]) -> None:
+            try:
+                outcome[i] = (True, action(v, *a))
+            except Exception as exc:
+                outcome[i] = (False, exc)
+
+        threads = [
+            threading.Thread(target=one, args=(i, v, a), name=f"swarm:{v.name}", daemon=True)
+            for i, (v, a) in enumerate(zip(self.vehicles, per, strict=True))
+        ]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        results, errors = [], []
+        for v, (ok, value) in zip(self.vehicles, outcome, strict=True):
+            if ok:
+                results.append(value)
+            else:
+                errors.append((v.name, value))
         if errors:
             first = errors[0][1]
             names = ", ".join(f"{n}: {e}" for n, e in errors)

@@ -62,6 +62,21 @@ def config_path(path: Path | str | None) -> Path:
     return Path(path or os.environ.get("ARENA_CONFIG") or DEFAULT_CONFIG)
 
 
+def chosen_config(argument: Path | str | None, option: Path | str | None) -> Path | None:
+    """The config a command line names: its positional ``argument`` or ``--config`` (``None``: neither).
+
+    Naming two different files is an error on stderr (status 2): neither may be dropped silently.
+    """
+    if argument and option and Path(argument) != Path(option):
+        typer.echo(
+            f"error: two config files named: {argument} (argument) and {option} (--config); name one",
+            err=True,
+        )
+        raise typer.Exit(2)
+    chosen = argument or option
+    return Path(chosen) if chosen else None
+
+
 @overload
 def load_config(path: Path | str | None, required: Literal[True] = True) -> ArenaConfig: ...
 @overload

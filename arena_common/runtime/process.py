@@ -9,6 +9,10 @@ file for stdout, a terminal).
 
 ``PR_SET_PDEATHSIG`` fires when the *thread* that forked the child ends, so start children from a thread
 that lives as long as they do.
+
+:class:`StopSignals` is the other half: how an arena process itself is asked to stop.  SIGINT (Ctrl-C),
+SIGTERM (a kill, systemd, a supervisor) and SIGHUP (its terminal closed) all set one stop event, so that
+every command stops the same orderly way whatever ended it; a second signal hurries the stop.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ import sys
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from types import FrameType
+from typing import Any, ClassVar
 
 _PR_SET_PDEATHSIG = 1
 
@@ -185,3 +191,127 @@ class ChildProcess:
     def join_output(self, timeout: float | None = None) -> None:
         """Wait (at most ``timeout``) until every line the child wrote has been handed to ``on_line``."""
         self._reader.join(timeout)
+
+
+#: The signals that ask an arena process to stop: Ctrl-C, a kill (or systemd, or a supervisor), and the
+#: terminal closing.
+STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+class StopSignals:
+    """SIGINT, SIGTERM and SIGHUP turned into an orderly stop: the first sets ``stop``, each further one
+    calls ``again(signum)`` (hurry: SIGKILL what is left, skip a wait…) — but a further SIGHUP does not:
+    a closing terminal sends one and its shell another, and neither is a user insisting.
+
+    Use as a context manager in the main thread (elsewhere it installs nothing: Python delivers signals
+    to the main thread only)::
+
+        stop = threading.Event()
+        with StopSignals(stop, again=lambda sig: sup.kill_all()):
+            while not stop.wait(0.1):
+                ...
+
+    The handlers only write the signal number to a pipe; a thread of this object reads it and acts.  So
+    nothing a handler does can deadlock with the code it interrupted (``Event.set`` from a handler can: the
+    main thread may hold the event's lock when the signal arrives), and a stop is acted on while the main
+    thread is busy in C code.  SIGINT is handled even when this process was started with it ignored (a
+    background job of a shell script: the arena must still stop on Ctrl-C of its group); SIGHUP is left
+    ignored when it was (``nohup``: the user asked the process to outlive its terminal).  On exit the
+    previous handlers come back, unless a stop signal reached this process: then it is on its way out, and a
+    further signal still hurries it instead of raising :class:`KeyboardInterrupt` in its clean-up.
+    """
+
+    #: True once any stop signal reached this process: handlers are no longer restored.
+    stopping: ClassVar[bool] = False
+
+    def __init__(
+        self,
+        stop: threading.Event,
+        *,
+        again: Callable[[int], None] | None = None,
+        signals: Sequence[int] = STOP_SIGNALS,
+    ) -> None:
+        self.stop = stop
+        self.again = again
+        self.signals = tuple(signals)
+        #: The signals received so far, in order.
+        self.received: list[int] = []
+        self._previous: dict[int, Any] = {}
+        self._pipe: tuple[int, int] | None = None
+        self._thread: threading.Thread | None = None
+
+    @property
+    def count(self) -> int:
+        """How many stop signals arrived."""
+        return len(self.received)
+
+    def _handler(self, signum: int, frame: FrameType | None) -> None:
+        pipe = self._pipe
+        if pipe is None:
+            return
+        try:
+            os.write(pipe[1], bytes([signum]))
+        except OSError:  # closed: act here instead (never raise into the interrupted code)
+            self._act(signum)
+
+    def _act(self, signum: int) -> None:
+        StopSignals.stopping = True
+        self.received.append(signum)
+        if len(self.received) == 1:
+            self.stop.set()
+        elif self.again is not None and signum != signal.SIGHUP:
+            try:
+                self.again(signum)
+            except Exception:  # a hurry that fails must not end the relay
+                pass
+        self.stop.set()
+
+    def _relay(self, read_fd: int) -> None:
+        while True:
+            try:
+                data = os.read(read_fd, 64)
+            except InterruptedError:
+                continue
+            except OSError:
+                return
+            if not data:
+                return
+            for signum in data:
+                self._act(signum)
+
+    def install(self) -> StopSignals:
+        """Install the handlers (from the main thread; elsewhere: nothing).  Returns ``self``."""
+        if threading.current_thread() is not threading.main_thread() or self._pipe is not None:
+            return self
+        read_fd, write_fd = os.pipe()
+        os.set_blocking(write_fd, False)
+        self._pipe = (read_fd, write_fd)
+        self._thread = threading.Thread(target=self._relay, args=(read_fd,), name="stop-signals", daemon=True)
+        self._thread.start()
+        for sig in self.signals:
+            current = signal.getsignal(sig)
+            if sig == signal.SIGHUP and current == signal.SIG_IGN:
+                continue  # nohup
+            self._previous[sig] = current
+            signal.signal(sig, self._handler)
+        return self
+
+    def restore(self) -> None:
+        """Put the previous handlers back (kept while a stop is under way, see the class)."""
+        if self._pipe is None or self.received or StopSignals.stopping:
+            return
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+        self._previous.clear()
+        read_fd, write_fd = self._pipe
+        self._pipe = None
+        os.close(write_fd)  # the relay reads the end of the pipe and returns
+        if self._thread is not None:
+            self._thread.join(1.0)
+        os.close(read_fd)
+
+    def __enter__(self) -> StopSignals:
+        return self.install()
+
+    def __exit__(self, *exc: object) -> None:
+        self.restore()

@@ -11,8 +11,9 @@ A service module does::
                 svc.stats.count("in")
 
 ``running`` opens the bus, declares the presence token ``arena/sys/alive/<host>/<service>``, publishes
-:class:`~arena_common.core.wire.Stats` every second and closes everything on the way out (SIGINT/SIGTERM
-set the stop event when called from the main thread).
+:class:`~arena_common.core.wire.Stats` every second and closes everything on the way out (SIGINT, SIGTERM and
+SIGHUP set the stop event when called from the main thread; a second SIGINT or SIGTERM ends the process at once:
+:class:`~arena_common.runtime.process.StopSignals`).
 """
 
 from __future__ import annotations
@@ -25,13 +26,13 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
 
 from arena_common.bus.hosts import host_bus_options, host_name
 from arena_common.bus.session import Bus, BusOptions, Lane, open_bus
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.runtime.clock import ClockSync
+from arena_common.runtime.process import StopSignals
 
 LOG_FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
 
@@ -199,6 +200,20 @@ def yield_cpu(log: logging.Logger | None = None) -> int:
     return value
 
 
+def exit_now(log: logging.Logger, signum: int) -> None:
+    """End this process at once (a second stop signal: the orderly stop takes too long for its user).
+
+    Its children go too: each one asked the kernel for a signal when this process dies
+    (:class:`~arena_common.runtime.process.ChildProcess`).
+    """
+    try:
+        log.warning("%s again: exiting at once", signal.Signals(signum).name)
+        for handler in logging.getLogger().handlers:
+            handler.flush()
+    finally:
+        os._exit(128 + signum)
+
+
 @contextmanager
 def running(
     name: str,
@@ -213,7 +228,8 @@ def running(
     clock: bool = True,
     clock_reference: bool = False,
 ) -> Iterator[Service]:
-    """Run a service: open the bus, declare presence, publish stats, stop cleanly on SIGINT/SIGTERM.
+    """Run a service: open the bus, declare presence, publish stats, stop cleanly on SIGINT/SIGTERM/SIGHUP
+    (from the main thread; a second SIGINT or SIGTERM exits at once, see :func:`exit_now`).
 
     With ``clock`` the service measures its host's clock offset to the mocap host's
     (:class:`~arena_common.runtime.clock.ClockSync`, ``svc.clock``); ``clock_reference`` makes it that
@@ -226,10 +242,7 @@ def running(
         open_bus(cfg.zenoh if cfg else None, host_bus_options(cfg, host, options)) if bus is None else bus
     )
     svc = Service(name, cfg, the_bus, host, vehicle, stop)
-    previous: dict[signal.Signals, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    signals = StopSignals(stop, again=lambda signum: exit_now(svc.log, signum)).install()
     token = the_bus.token(keys.alive(svc.host, svc.id))
     if clock or clock_reference:
         spec = cfg.clock if cfg is not None else None
@@ -246,8 +259,6 @@ def running(
         stats_thread.join(timeout=2.0)
         if svc.clock is not None:
             svc.clock.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
         try:
             token.undeclare()
         except Exception:
@@ -255,3 +266,4 @@ def running(
         if own_bus:
             the_bus.close()
         svc.log.info("stopped")
+        signals.restore()

@@ -15,8 +15,9 @@ minute).  Children never outlive the supervisor: each one asks the kernel for SI
 dies (``PR_SET_PDEATHSIG``, Linux), so even a ``kill -9`` of the supervisor stops them (an orderly stop
 sends SIGTERM first); each child also runs in its own process group, which is what the supervisor
 signals, so a child's own children go too, and a Ctrl-C on the terminal reaches the supervisor alone,
-which then stops the children in order.  Each child is a :class:`~arena_common.runtime.process.ChildProcess`,
-the one way the arena starts, watches and stops a process.
+which then stops the children in order (a second Ctrl-C or SIGTERM kills them at once).  Each
+child is a :class:`~arena_common.runtime.process.ChildProcess`, the one way the arena starts, watches and
+stops a process.
 
 ``PR_SET_PDEATHSIG`` fires when the *thread* that forked the child ends, so spawn from a thread that
 lives as long as the children (``arena up`` spawns from its main thread).
@@ -40,7 +41,7 @@ from typing import Any, Protocol
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig, HostSpec
 from arena_common.core.errors import ArenaError
-from arena_common.runtime.process import ChildProcess, describe_exit
+from arena_common.runtime.process import ChildProcess, StopSignals, describe_exit
 
 # Config service name → (process name, module) pairs; "sim" is the simulated world: the simulated
 # autopilots of the ``autopilot = "sim"`` vehicles (none: not started) and the Motive emulator.
@@ -49,6 +50,7 @@ SERVICE_PROCESSES: Mapping[str, tuple[tuple[str, str], ...]] = {
     "transform": (("transform", "services.frame_transform"),),
     "recorder": (("recorder", "services.recorder"),),
     "sim": (("sim_vehicle", "services.sim_vehicle"), ("sim_mocap", "services.sim_mocap")),
+    "ros2": (("ros2", "services.ros2"),),
 }
 VEHICLE_PROCESSES: Mapping[str, str] = {
     "downsampler": "services.downsampler",
@@ -328,6 +330,7 @@ class Supervisor:
         self.on_event = on_event
         self.children = [_Child(s) for s in specs]
         self.stopping = False
+        self.killing = False  # set by kill_all: nothing starts again
         self._started = False
 
     # -- reporting ------------------------------------------------------------------------------------
@@ -374,6 +377,8 @@ class Supervisor:
     # -- starting -------------------------------------------------------------------------------------
     def _spawn(self, child: _Child) -> bool:
         spec = child.spec
+        if self.killing:
+            return False
         try:
             proc = ChildProcess(
                 spec.argv,
@@ -436,7 +441,7 @@ class Supervisor:
 
     def poll(self) -> None:
         """One supervision step: notice exits, schedule restarts, start what is due."""
-        if self.stopping:
+        if self.stopping or self.killing:
             return
         now = time.monotonic()
         for child in self.children:
@@ -477,7 +482,7 @@ class Supervisor:
     def _stop_group(self, group: Iterable[_Child]) -> None:
         group = [c for c in group if c.alive]
         for child in group:
-            self._signal(child, signal.SIGTERM)
+            self._signal(child, signal.SIGKILL if self.killing else signal.SIGTERM)
         deadline = time.monotonic() + self.grace
         for child in group:
             assert child.proc is not None
@@ -490,6 +495,16 @@ class Supervisor:
                     child.proc.wait(timeout=5.0)
                 except subprocess.TimeoutExpired:
                     self.say(f"{child.spec.name} (pid {child.proc.pid}) survived SIGKILL")
+
+    def kill_all(self, why: str = "") -> None:
+        """SIGKILL every child's process group now and start none again (a second Ctrl-C: hurry).
+        Thread-safe; :meth:`shutdown` still reaps them."""
+        self.killing = True
+        alive = [c for c in self.children if c.alive]
+        if alive:
+            self.say(f"{why + ': ' if why else ''}SIGKILL to " + ", ".join(c.spec.name for c in alive))
+        for child in alive:
+            self._signal(child, signal.SIGKILL)
 
     def shutdown(self) -> None:
         """Stop every child: SIGTERM, then SIGKILL after ``grace``; the router last.  Idempotent."""
@@ -517,25 +532,20 @@ def supervise(
 ) -> Supervisor:
     """Run ``specs`` in the foreground until SIGINT/SIGTERM/SIGHUP (or ``stop``); returns when all stopped.
 
-    Signal handlers are installed only when called from the main thread.  ``tick`` is called about
+    Signal handlers are installed only when called from the main thread
+    (:class:`~arena_common.runtime.process.StopSignals`); a second SIGINT or SIGTERM kills every child at once
+    (:meth:`Supervisor.kill_all`) instead of waiting for their grace period.  ``tick`` is called about
     every 0.1 s with the supervisor (stats, status displays).
     """
     stop = stop or threading.Event()
     sup = Supervisor(specs, **kwargs)
-    previous: dict[int, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-            previous[sig] = signal.signal(sig, lambda *_: stop.set())
-    try:
-        sup.start(stop)
-        while not stop.wait(0.1):
-            sup.poll()
-            if tick is not None:
-                tick(sup)
-    finally:
+    with StopSignals(stop, again=lambda signum: sup.kill_all(signal.Signals(signum).name)):
         try:
-            sup.shutdown()
+            sup.start(stop)
+            while not stop.wait(0.1):
+                sup.poll()
+                if tick is not None:
+                    tick(sup)
         finally:
-            for signum, handler in previous.items():
-                signal.signal(signum, handler)
+            sup.shutdown()
     return sup
