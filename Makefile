@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test test-system test-px4 lint docs bench soak clean
+.PHONY: setup run test test-typed test-system test-px4 lint docs bench soak clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -15,8 +15,10 @@ $(STAMP): pyproject.toml
 
 setup: $(STAMP)
 
+# The simulated arena flying, with a live status table; Ctrl-C lands every vehicle and returns.
+CONFIG ?= deploy/sim.toml
 run: $(STAMP)
-	$(BIN)/arena demo deploy/sim.toml
+	$(BIN)/arena demo $(CONFIG)
 
 # Unit and integration tests, in TEST_JOBS parallel workers (pytest-xdist; most tests wait on sockets and
 # processes, so more workers than cores pays): about 2 minutes on a 2-core machine, under 3 with two CPU
@@ -25,11 +27,17 @@ run: $(STAMP)
 # modules instead of compiling them again in every worker.
 TEST_JOBS ?= 4
 test: $(STAMP)
-	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist worksteal -m "not system and not px4"
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist worksteal -m "not system and not px4 and not typed"
 
 # Whole-system tests: examples, fault injection, network namespaces, security, fuzzing, the short soak.
 test-system: $(STAMP)
-	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -m system
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -m "system and not typed"
+
+# The typed tier: every command of README.md, docs/, `arena --help` and the systemd units, run as a user
+# types it (the real console script, shared options before and after, a config named on the line), and
+# what each promises: its ports, its vehicles, its errors, nothing left running when its terminal closes.
+test-typed: $(STAMP)
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n 3 --dist worksteal -m typed tests/typed
 
 # The real-PX4 tier: PX4 v1.16 SITL (PX4_SITL_DIR, else ../shared/px4-sitl) flown through the arena.
 test-px4: $(STAMP)
@@ -41,6 +49,7 @@ lint: $(STAMP)
 	$(BIN)/mypy
 	$(BIN)/python -m tools.wiredoc --check
 	$(BIN)/python -m tools.layers
+	$(BIN)/python -m tools.typed --check
 
 # API documentation generated from the docstrings (pdoc), written to build/docs/ (open index.html).
 DOC_MODULES := arena_common arena_common.client \

@@ -141,6 +141,7 @@ def typed(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run([ARENA, *argv], cwd=cwd, capture_output=True, text=True, timeout=60)
 
 
+@pytest.mark.covers("arena security init", "arena security check", "arena security rules")
 def test_arena_security_as_an_administrator_types_it(tmp_path: Path) -> None:
     (tmp_path / "lab.toml").write_text(LAB_EXAMPLE.read_text())
     failed = typed("security", "check", "lab.toml", cwd=tmp_path)

@@ -29,7 +29,10 @@ NOT_RUN_HERE: dict[str, str] = {
     "echo ": "writes a lab computer's chrony configuration (piped to sudo tee)",
     "chronyc ": "chrony's own client, on a lab computer",
     "ssh ": "reaches another computer",
-    "make test": "CI runs every test target itself (.ci/run)",
+    "export ": "a ROS 2 user's shell settings, on a computer with ROS 2 (none can be installed here)",
+    "ros2 ": "ROS 2's own tools (no ROS 2 here: tests/test_ros2_*.py test the protocol they speak)",
+    "rviz2": "ROS 2's 3D viewer (no ROS 2 here: tests/test_ros2_*.py test the protocol it speaks)",
+    "make test": "CI runs every test target itself (.ci/run); make test-typed is this tier",
     "make lint": "CI runs it (.ci/run)",
     "make docs": "CI runs it (.ci/run)",
 }

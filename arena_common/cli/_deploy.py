@@ -175,7 +175,7 @@ def write_units(units: UnitSet, prefix: Path | str = "/") -> list[Path]:
 
 def systemd_cmd(
     config: Annotated[Path, typer.Argument(help="Arena config file.")],
-    host: Annotated[str, typer.Option("--host", help="The computer (a [hosts] name) to install.")],
+    host: Annotated[str, typer.Option("--host", help="The computer (a \\[hosts] name) to install.")],
     prefix: Annotated[Path, typer.Option("--prefix", help="Install root; stage elsewhere to review.")] = Path(
         "/"
     ),

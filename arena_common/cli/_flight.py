@@ -264,7 +264,7 @@ def disarm(
 
 def takeoff(
     target: Target,
-    height: Annotated[float, typer.Argument(help="Height above the floor [m].")] = 1.0,
+    height: Annotated[float, typer.Argument(help="Height above the floor (m).")] = 1.0,
     timeout: Timeout = 20.0,
 ) -> None:
     """Take off to a height and wait until there."""
@@ -289,8 +289,8 @@ def goto(
     north: float,
     east: float,
     down: float,
-    yaw: Annotated[float | None, typer.Option(help="Yaw [deg].")] = None,
-    tolerance: Annotated[float, typer.Option(help="Arrival tolerance [m].")] = 0.1,
+    yaw: Annotated[float | None, typer.Option(help="Yaw (degrees).")] = None,
+    tolerance: Annotated[float, typer.Option(help="Arrival tolerance (m).")] = 0.1,
     timeout: Timeout = 30.0,
 ) -> None:
     """Fly to NORTH EAST DOWN (arena frame, metres; down is negative above the floor)."""

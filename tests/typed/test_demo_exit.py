@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import free_port, wait_for
-from tests.test_cli_typed import ARENA, Command, Typed, commands, kill_leftovers, leftovers
+from tests.typed.harness import ARENA, Command, Typed, commands, kill_leftovers, leftovers
 
 pytestmark = [
     pytest.mark.system,
@@ -55,6 +55,7 @@ def _index(cmd: Command, pattern: str) -> int:
     return next(i for i, line in enumerate(cmd.lines) if re.search(pattern, line))
 
 
+@pytest.mark.covers("arena demo")
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGHUP, signal.SIGTERM], ids=lambda s: s.name)
 def test_a_stopped_demo_lands_every_vehicle_then_stops_the_arena(
     tmp_path: Path, typed: Callable[..., Command], sig: signal.Signals
