@@ -69,7 +69,7 @@ def _example_frame(n_bodies: int) -> natnet.Frame:
 
 def payload_sizes(n_bodies: int) -> dict[str, int]:
     """Bytes of what each hop of the arena carries for ``n_bodies`` (the floors send the same sizes)."""
-    from services.mocap_ingest import encode_pose
+    from arena_common.pipeline.ingest import encode_pose
 
     frame = natnet.encode_frame(_example_frame(n_bodies), natnet.Version.parse(NATNET_VERSION))
     body = _example_frame(1).rigid_bodies[0]

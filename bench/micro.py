@@ -280,9 +280,9 @@ def _stages(scale: float) -> dict[str, float]:
     """The Python work each service does per pose, outside Zenoh (decode, process, encode)."""
     from arena_common.geometry.frames import FrameTransform
     from arena_common.mavlink.link import mavlink2
+    from arena_common.pipeline.ingest import body_numbers, encode_pose
+    from arena_common.pipeline.transform import PoseConverter
     from arena_common.pipeline.vision import VisionFilter
-    from services.frame_transform import PoseConverter
-    from services.mocap_ingest import body_numbers, encode_pose
 
     n = int(10_000 * scale)
     now = time.time_ns()

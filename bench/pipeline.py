@@ -308,9 +308,9 @@ def run_arena(
     ``decimate`` is the config's ``[pipeline] decimate``: ``downsampler`` (one process per vehicle; chain
     ``arena``) or ``transform`` (chain ``arena-td``).
     """
+    from arena_common.pipeline.transform import frame_transform
+    from arena_common.sim.natnet_scene import rigid_bodies
     from arena_common.sim.natnet_server import TICK_FREQUENCY
-    from services.frame_transform import frame_transform
-    from services.sim_mocap import rigid_bodies
 
     chain_name = CHAINS[decimate]
     workdir = settings.logs / f"{chain_name}-{n}"

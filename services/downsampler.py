@@ -26,18 +26,8 @@ from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
 from arena_common.geometry.filters import FilterError
 from arena_common.pipeline.vision import VisionFilter, account
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    HostOpt,
-    ListenOpt,
-    LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
-from arena_common.runtime.service import running, setup_logging
+from arena_common.runtime.command import Shared, service_command
+from arena_common.runtime.service import running
 
 SERVICE = "downsampler"
 QUEUE_CAPACITY = 16  # ≈ 90 ms of input at 180 Hz
@@ -88,27 +78,17 @@ def main(
                 svc.stats.latency((time.time_ns() - item.t_recv) * 1e-9)
 
 
+@service_command
 def cli(
+    shared: Shared,
     vehicle: Annotated[str, typer.Option("--vehicle", "-v", help="The vehicle to serve.")],
     rate: Annotated[
         float | None, typer.Option("--rate", help="Vision rate in Hz (default: the vehicle's vision_rate).")
     ] = None,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
-    host: HostOpt = None,
-    log_level: LogOpt = "INFO",
 ) -> None:
     """One vehicle's poses decimated by time to its vision rate (arena/<drone>/vision)."""
-    setup_logging(log_level)
-    cfg = load_config(config)
-    try:
-        main(cfg, bus_options(mode, connect, listen, zconfig), vehicle=vehicle, rate=rate, host=host)
-    except ConfigError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+    cfg = shared.config
+    main(cfg, shared.bus, vehicle=vehicle, rate=rate, host=shared.host)
 
 
 if __name__ == "__main__":

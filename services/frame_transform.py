@@ -26,28 +26,16 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass, field
 
 import typer
 
 from arena_common.bus.session import BusOptions, Lane, Publisher
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
-from arena_common.geometry.filters import VelocityEstimator
-from arena_common.geometry.frames import IDENTITY_QUAT, Calibration, FrameError, FrameTransform, UpAxis
-from arena_common.pipeline.vision import VisionFilter, account
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    HostOpt,
-    ListenOpt,
-    LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
-from arena_common.runtime.service import Service, running, setup_logging
+from arena_common.geometry.frames import FrameError
+from arena_common.pipeline.transform import Decimators, PoseConverter, frame_transform
+from arena_common.runtime.command import Shared, service_command
+from arena_common.runtime.service import running
 
 SERVICE = "transform"
 SUBSCRIPTION = keys.FRAMES
@@ -55,97 +43,6 @@ SUBSCRIPTION = keys.FRAMES
 # dropping the frame a decimator needs.
 QUEUE_CAPACITY = 256
 MAX_VEHICLES = 256  # bounds the per-vehicle state a misbehaving publisher could make us create
-VELOCITY_CUTOFF_HZ = 15.0
-VELOCITY_MAX_GAP_S = 0.1
-_ZERO3: wire.Vec3 = (0.0, 0.0, 0.0)
-
-
-def frame_transform(cfg: ArenaConfig) -> FrameTransform:
-    """The configured Motive → arena transform (``mocap.up_axis`` and the ``[calibration]`` table)."""
-    cal = Calibration.from_degrees(cfg.calibration.yaw_deg, cfg.calibration.offset)
-    return FrameTransform(UpAxis.parse(cfg.mocap.up_axis), cal)
-
-
-@dataclass
-class PoseConverter:
-    """A mocap frame's bodies → Poses: the frame transform plus one velocity estimator per vehicle.
-
-    Not thread-safe: one converter is driven by one thread.
-    """
-
-    transform: FrameTransform
-    cutoff_hz: float = VELOCITY_CUTOFF_HZ
-    max_gap_s: float = VELOCITY_MAX_GAP_S
-    _velocity: dict[str, VelocityEstimator] = field(default_factory=dict, init=False, repr=False)
-
-    def estimator(self, drone: str) -> VelocityEstimator:
-        """The velocity estimator of ``drone`` (created on first use)."""
-        est = self._velocity.get(drone)
-        if est is None:
-            est = self._velocity[drone] = VelocityEstimator(self.cutoff_hz, self.max_gap_s)
-        return est
-
-    def convert(self, frame: wire.MocapFrame, m: wire.MocapBody, tp: int | None = None) -> wire.Pose:
-        """Convert body ``m`` (vehicle ``m.v``) of ``frame``; raises
-        :class:`~arena_common.geometry.frames.FrameError` on bad numbers.
-
-        A valid sample needs a unit quaternion (to within 1 %). An invalid one (``ok`` false) keeps its
-        converted position, and its converted attitude when the quaternion is usable (identity otherwise),
-        and restarts the velocity estimate.
-        """
-        est = self.estimator(m.v)
-        tf = self.transform
-        if m.ok:
-            p, q = tf.pose(m.p, m.q)
-            vel = est.update(frame.t, p, q, True)
-        else:
-            p = tf.position(m.p)
-            try:
-                q = tf.quaternion(m.q)
-            except FrameError:
-                q = IDENTITY_QUAT
-            est.reset()
-            vel = est.last
-        if vel.valid:
-            v, w, vok = vel.linear_ned, vel.angular_frd, True
-        else:  # unknown velocities travel as zeros with vok false (the wire carries no NaN here)
-            v, w, vok = _ZERO3, _ZERO3, False
-        return wire.Pose(
-            t=frame.t,
-            p=p,
-            q=q,
-            ok=m.ok,
-            fn=frame.fn,
-            v=v,
-            w=w,
-            vok=vok,
-            tp=wire.now_ns() if tp is None else tp,
-        )
-
-    def __len__(self) -> int:
-        return len(self._velocity)
-
-
-class Decimators:
-    """The vision filters the transform runs when it decimates (one per configured vehicle)."""
-
-    def __init__(self, svc: Service, cfg: ArenaConfig) -> None:
-        self.svc = svc
-        self.filters = {name: VisionFilter(v.vision_rate) for name, v in cfg.vehicles.items()}
-        self.publishers = {
-            name: svc.bus.stream_publisher(keys.vision(name), wire.Pose, Lane.VISION) for name in self.filters
-        }
-
-    def offer(self, drone: str, pose: wire.Pose) -> None:
-        """Publish ``pose`` as ``drone``'s vision if its filter passes it (unknown bodies have none)."""
-        filt = self.filters.get(drone)
-        if filt is None:
-            return
-        d = filt.process(pose, pose.tp)
-        account(self.svc, drone, pose, d, filt.rc, prefix="vision_")
-        if d.vision is not None:
-            self.publishers[drone].put(d.vision)
-            self.svc.stats.count("vision")
 
 
 def main(
@@ -219,19 +116,13 @@ def main(
             svc.stats.latency((time.time_ns() - item.t_recv) * 1e-9)
 
 
+@service_command
 def cli(
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
-    host: HostOpt = None,
-    log_level: LogOpt = "INFO",
+    shared: Shared,
 ) -> None:
     """Motive frames (arena/sys/frames) → arena-frame poses with velocities (arena/<drone>/pose)."""
-    setup_logging(log_level)
-    cfg = load_config(config)
-    main(cfg, bus_options(mode, connect, listen, zconfig), host=host)
+    cfg = shared.config
+    main(cfg, shared.bus, host=shared.host)
 
 
 if __name__ == "__main__":

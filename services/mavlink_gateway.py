@@ -16,22 +16,12 @@ import typer
 
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig
-from arena_common.core.errors import ConfigError, GatewayError
+from arena_common.core.errors import GatewayError
 from arena_common.gateway.gateway import Gateway, GatewayOptions
 from arena_common.gateway.origin import parse_origin
 from arena_common.mavlink.signing import vehicle_key
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    HostOpt,
-    ListenOpt,
-    LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
-from arena_common.runtime.service import running, setup_logging
+from arena_common.runtime.command import Shared, service_command
+from arena_common.runtime.service import running
 
 SERVICE = "gateway"
 
@@ -55,7 +45,9 @@ def main(
         gw.run(svc.stop)
 
 
+@service_command
 def cli(
+    shared: Shared,
     vehicle: Annotated[str, typer.Option("--vehicle", "-v", help="The vehicle to serve (config name).")],
     sysid: Annotated[int, typer.Option("--sysid", help="Our own MAVLink system id (not 255: QGC's).")] = 245,
     gcs: Annotated[
@@ -81,17 +73,9 @@ def cli(
             help="EKF global origin sent to the autopilot: LAT,LON,ALT (deg, deg, m AMSL), or 'off'.",
         ),
     ] = "0,0,0",
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
-    host: HostOpt = None,
-    log_level: LogOpt = "INFO",
 ) -> None:
     """MAVLink gateway of one vehicle: vision out, state/telemetry/events in, commands, setpoints."""
-    setup_logging(log_level)
-    cfg = load_config(config)
+    cfg = shared.config
     if not 1 <= sysid <= 254:
         raise typer.BadParameter(f"--sysid must be within 1..254, got {sysid}")
     if state_rate is not None and not state_rate > 0:
@@ -110,11 +94,7 @@ def cli(
         state_rate=state_rate,
         origin=origin_lla,
     )
-    try:
-        main(cfg, bus_options(mode, connect, listen, zconfig), vehicle=vehicle, gateway=options, host=host)
-    except ConfigError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+    main(cfg, shared.bus, vehicle=vehicle, gateway=options, host=shared.host)
 
 
 if __name__ == "__main__":

@@ -25,19 +25,9 @@ import typer
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig, VehicleSpec
 from arena_common.core.errors import ConfigError
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    HostOpt,
-    ListenOpt,
-    LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
-from arena_common.runtime.px4_sitl import Px4Sitl, Px4SitlError, arena_boot_params
-from arena_common.runtime.service import running, setup_logging
+from arena_common.runtime.command import Shared, service_command
+from arena_common.runtime.px4_sitl import Px4Sitl, arena_boot_params
+from arena_common.runtime.service import running
 
 SERVICE = "px4_sitl"
 REBOOT_DELAY = 0.5  # s between px4 exiting and booting again
@@ -124,28 +114,18 @@ def main(
             svc.log.info("px4 stopped (status %s)", code)
 
 
+@service_command
 def cli(
+    shared: Shared,
     vehicle: Annotated[str, typer.Option("--vehicle", "-v", help="The PX4 SITL vehicle to fly.")],
     build: Annotated[
         str | None,
         typer.Option("--build", help="The PX4 SITL build (default: $PX4_SITL_DIR, else ../shared/px4-sitl)."),
     ] = None,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
-    host: HostOpt = None,
-    log_level: LogOpt = "INFO",
 ) -> None:
     """A real PX4 SITL autopilot (SIH) for one vehicle, booted again whenever it exits."""
-    setup_logging(log_level)
-    cfg = load_config(config)
-    try:
-        main(cfg, bus_options(mode, connect, listen, zconfig), vehicle=vehicle, host=host, build=build)
-    except (ConfigError, Px4SitlError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+    cfg = shared.config
+    main(cfg, shared.bus, vehicle=vehicle, host=shared.host, build=build)
 
 
 if __name__ == "__main__":

@@ -32,19 +32,9 @@ from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
 from arena_common.geometry.frames import quat_canonical, quat_from_yaw, quat_multiply, quat_normalize
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    HostOpt,
-    ListenOpt,
-    LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
+from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.px4_sitl import Px4SitlError, find_build, ports, sih_home
-from arena_common.runtime.service import running, setup_logging
+from arena_common.runtime.service import running
 from services.px4_sitl import boot_params, sitl_vehicle
 
 SERVICE = "px4_truth"
@@ -175,25 +165,15 @@ def main(
             conn.close()
 
 
+@service_command
 def cli(
+    shared: Shared,
     vehicle: Annotated[str, typer.Option("--vehicle", "-v", help="The PX4 SITL vehicle.")],
     rate: Annotated[float, typer.Option("--rate", help="Truth samples per second asked of PX4.")] = RATE,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
-    host: HostOpt = None,
-    log_level: LogOpt = "INFO",
 ) -> None:
     """SIH's ground truth of one PX4 SITL vehicle → arena/<drone>/truth (for the Motive emulator)."""
-    setup_logging(log_level)
-    cfg = load_config(config)
-    try:
-        main(cfg, bus_options(mode, connect, listen, zconfig), vehicle=vehicle, host=host, rate=rate)
-    except (ConfigError, Px4SitlError) as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+    cfg = shared.config
+    main(cfg, shared.bus, vehicle=vehicle, host=shared.host, rate=rate)
 
 
 if __name__ == "__main__":

@@ -24,18 +24,8 @@ from arena_common.bus.session import BusOptions, Channel, Received, Subscription
 from arena_common.core import keys
 from arena_common.core.config import ArenaConfig
 from arena_common.recording.mcap import Recorder, Sample
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    HostOpt,
-    ListenOpt,
-    LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
-from arena_common.runtime.service import running, setup_logging, yield_cpu
+from arena_common.runtime.command import Shared, service_command
+from arena_common.runtime.service import running, yield_cpu
 
 QUEUE_CAPACITY = 50_000  # samples; ≈10 s of a busy arena
 
@@ -113,24 +103,18 @@ def main(
             svc.log.info("recorded %d samples into %d files", rec.messages, len(rec.files))
 
 
+@service_command
 def cli(
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
-    host: HostOpt = None,
+    shared: Shared,
     directory: Annotated[
         Path | None, typer.Option("--dir", "-d", help="Directory of the files (default: recorder.directory).")
     ] = None,
     name: Annotated[str | None, typer.Option("--name", help="Name of the first file (default: rec).")] = None,
-    log_level: LogOpt = "INFO",
 ) -> None:
     """Record the bus into MCAP files (Foxglove, PlotJuggler, `arena rec info`)."""
-    setup_logging(log_level)
-    cfg = load_config(config)
+    cfg = shared.config
     yield_cpu(logging.getLogger("arena.recorder"))
-    main(cfg, bus_options(mode, connect, listen, zconfig), host=host, directory=directory, name=name)
+    main(cfg, shared.bus, host=shared.host, directory=directory, name=name)
 
 
 if __name__ == "__main__":

@@ -19,18 +19,8 @@ from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
 from arena_common.ros2.bridge import Bridge, BridgeOptions
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    HostOpt,
-    ListenOpt,
-    LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
-from arena_common.runtime.service import running, setup_logging
+from arena_common.runtime.command import Shared, service_command
+from arena_common.runtime.service import running
 
 SERVICE = "ros2"
 
@@ -82,13 +72,9 @@ def main(
             bridge.close()
 
 
+@service_command
 def cli(
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
-    host: HostOpt = None,
+    shared: Shared,
     domain: Annotated[
         int | None, typer.Option("--domain", help="ROS domain id (default: $ROS_DOMAIN_ID, else 0).")
     ] = None,
@@ -99,25 +85,19 @@ def cli(
     no_commands: Annotated[
         bool, typer.Option("--no-commands", help="Publish only; take no goto or cmd_vel from ROS 2.")
     ] = False,
-    log_level: LogOpt = "INFO",
 ) -> None:
     """The arena as ROS 2 topics for rmw_zenoh (poses, odometry, TF, battery, diagnostics, /rosout), and
     goto / cmd_vel commands from ROS 2 under the arena's safety rules."""
-    setup_logging(log_level)
-    cfg = load_config(config)
-    try:
-        main(
-            cfg,
-            bus_options(mode, connect, listen, zconfig),
-            host=host,
-            domain=domain,
-            vehicles=tuple(vehicle or ()),
-            node=node,
-            commands=not no_commands,
-        )
-    except ConfigError as exc:
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from None
+    cfg = shared.config
+    main(
+        cfg,
+        shared.bus,
+        host=shared.host,
+        domain=domain,
+        vehicles=tuple(vehicle or ()),
+        node=node,
+        commands=not no_commands,
+    )
 
 
 if __name__ == "__main__":

@@ -42,24 +42,14 @@ from arena_common.core.errors import ConfigError, InvalidName
 from arena_common.geometry.frames import Calibration, FrameError, FrameTransform, UpAxis
 from arena_common.mocap.capture import CaptureError
 from arena_common.mocap.natnet import ModelDefs, NatNetError, RigidBodyDef, Version
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    HostOpt,
-    ListenOpt,
-    LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
-from arena_common.runtime.service import Service, running, setup_logging
+from arena_common.runtime.command import Shared, service_command
+from arena_common.runtime.service import Service, running
+from arena_common.sim.natnet_scene import rigid_bodies
 from arena_common.sim.natnet_server import (
     CAMERA_LATENCY,
     SOFTWARE_LATENCY,
     TRUTH_TIMEOUT,
     NatNetServer,
-    NatNetServerError,
     Recording,
     SimScene,
     TickClock,
@@ -71,30 +61,6 @@ from arena_common.sim.natnet_server import (
 SERVICE = "sim_mocap"
 VERSIONS = ("3.0", "3.1", "4.0", "4.1")
 Occlusion = tuple[str, float, float]  # vehicle, start (s after start), duration (s)
-
-
-def rigid_bodies(cfg: ArenaConfig, names: Sequence[str] = ()) -> list[tuple[str, str, int]]:
-    """``(vehicle, rigid-body name, id)`` of the selected vehicles (all by default), in config order.
-
-    Integer ``rigid_body`` values are ids (the body is named after the vehicle); the others get
-    ``index + 1``, or the next free id when another vehicle claims that one.
-    """
-    selected = [cfg.vehicle(n).name for n in names] if names else list(cfg.vehicles)
-    every = list(cfg.vehicles.values())
-    taken = {v.rigid_body for v in every if isinstance(v.rigid_body, int)}
-    out: list[tuple[str, str, int]] = []
-    used: set[int] = set()
-    for index, v in enumerate(every):
-        if isinstance(v.rigid_body, int):
-            body_id, name = v.rigid_body, v.name
-        else:
-            body_id, name = index + 1, v.rigid_body
-            while body_id in taken or body_id in used:
-                body_id += 1
-        used.add(body_id)
-        if v.name in selected:
-            out.append((v.name, name, body_id))
-    return out
 
 
 def parse_occlusion(text: str) -> Occlusion:
@@ -293,7 +259,9 @@ def main(
         _simulate(svc, server, scene, rate, occlusions)
 
 
+@service_command
 def cli(
+    shared: Shared,
     natnet_version: Annotated[
         str | None,
         typer.Option("--natnet-version", "-n", help="3.0, 3.1, 4.0 or 4.1 (default: sim.natnet_version)."),
@@ -312,22 +280,14 @@ def cli(
         list[str] | None,
         typer.Option("--occlude", help="VEHICLE:START_S:DURATION_S — hide a body for a while (repeatable)."),
     ] = None,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
-    host: HostOpt = None,
-    log_level: LogOpt = "INFO",
 ) -> None:
     """Motive emulator: stream the simulated vehicles' true poses as NatNet (or replay a capture)."""
-    setup_logging(log_level)
-    cfg = load_config(config)
+    cfg = shared.config
     try:
         main(
             cfg,
-            bus_options(mode, connect, listen, zconfig),
-            host=host,
+            shared.bus,
+            host=shared.host,
             natnet_version=natnet_version,
             replay=replay,
             speed=speed,
@@ -335,7 +295,7 @@ def cli(
             vehicles=vehicle or (),
             occlusions=[parse_occlusion(o) for o in occlude or ()],
         )
-    except (ConfigError, NatNetServerError, CaptureError) as exc:
+    except CaptureError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
 

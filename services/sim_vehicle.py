@@ -27,18 +27,8 @@ from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
 from arena_common.mavlink import px4
 from arena_common.mavlink.signing import vehicle_key
-from arena_common.runtime.options import (
-    ConfigOpt,
-    ConnectOpt,
-    HostOpt,
-    ListenOpt,
-    LogOpt,
-    ModeOpt,
-    ZConfigOpt,
-    bus_options,
-    load_config,
-)
-from arena_common.runtime.service import running, setup_logging
+from arena_common.runtime.command import Shared, service_command
+from arena_common.runtime.service import running
 from arena_common.sim.autopilot import SimAutopilot, SimAutopilotError, SimClock, TruePose, run_autopilots
 
 SERVICE = "sim_vehicle"
@@ -176,7 +166,9 @@ def main(
                 ap.close()
 
 
+@service_command
 def cli(
+    shared: Shared,
     vehicle: Annotated[
         list[str] | None, typer.Option("--vehicle", "-v", help="Simulate only this vehicle (repeatable).")
     ] = None,
@@ -192,28 +184,20 @@ def cli(
             "--estimate-lag", help="Time constant (s) of a first-order lag of each estimate (0: none)."
         ),
     ] = 0.0,
-    config: ConfigOpt = None,
-    mode: ModeOpt = None,
-    connect: ConnectOpt = None,
-    listen: ListenOpt = None,
-    zconfig: ZConfigOpt = None,
-    host: HostOpt = None,
-    log_level: LogOpt = "INFO",
 ) -> None:
     """Simulated PX4 vehicles speaking MAVLink 2, with their true poses on arena/<name>/truth."""
-    cfg = load_config(config)
-    setup_logging(log_level)
+    cfg = shared.config
     try:
         main(
             cfg,
-            bus_options(mode, connect, listen, zconfig),
+            shared.bus,
             vehicles=vehicle or (),
             speed=speed,
             truth_rate=truth_rate,
             estimate_lag=estimate_lag,
-            host=host,
+            host=shared.host,
         )
-    except (ConfigError, SimAutopilotError) as exc:
+    except SimAutopilotError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
 

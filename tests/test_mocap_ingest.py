@@ -24,8 +24,8 @@ from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.mocap.natnet import MessageId, ModelDefs, RigidBody
+from arena_common.pipeline.ingest import body_key_name, encode_pose
 from services import mocap_ingest
-from services.mocap_ingest import body_key_name, encode_pose
 from tests.conftest import REPO, Proc, service_argv, wait_for, write_config
 from tests.test_natnet_client import Body, FakeMotive
 

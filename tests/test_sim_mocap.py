@@ -28,6 +28,7 @@ from arena_common.core.errors import ConfigError
 from arena_common.mocap import natnet
 from arena_common.mocap.capture import read_frames_jsonl, read_udp
 from arena_common.mocap.natnet import Frame, MessageId, ModelDefs, RigidBodyDef, Version
+from arena_common.sim.natnet_scene import rigid_bodies
 from arena_common.sim.natnet_server import (
     MODELS_CHANGED,
     TICK_FREQUENCY,
@@ -543,8 +544,8 @@ def test_scene_latency_staleness_and_body_ids(arena_config: Callable[..., ArenaC
     vehicles = dict(cfg.vehicles)
     vehicles["d3"] = vehicles["d3"].replace(rigid_body=2)
     cfg = cfg.replace(vehicles=vehicles)
-    assert sim_mocap.rigid_bodies(cfg) == [("d1", "d1", 1), ("d2", "d2", 3), ("d3", "d3", 2)]
-    assert sim_mocap.rigid_bodies(cfg, ["d2"]) == [("d2", "d2", 3)]
+    assert rigid_bodies(cfg) == [("d1", "d1", 1), ("d2", "d2", 3), ("d3", "d3", 2)]
+    assert rigid_bodies(cfg, ["d2"]) == [("d2", "d2", 3)]
 
 
 def test_bad_input_raises_clear_errors(arena_config: Callable[..., ArenaConfig], tmp_path: Path) -> None:

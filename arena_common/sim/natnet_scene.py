@@ -10,6 +10,7 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+from arena_common.core.config import ArenaConfig
 from arena_common.geometry.frames import FrameTransform, quat_multiply
 from arena_common.mocap import natnet
 from arena_common.mocap.natnet import Frame, ModelDefs, RigidBody, RigidBodyDef
@@ -233,3 +234,27 @@ class SimScene:
             n = math.sqrt(w * w + x * x + y * y + z * z)
             q = (x / n, y / n, z / n, w / n)
         return RigidBody(body.id, (px, py, pz), q, self.noise_m, True, 1)
+
+
+def rigid_bodies(cfg: ArenaConfig, names: Sequence[str] = ()) -> list[tuple[str, str, int]]:
+    """``(vehicle, rigid-body name, id)`` of the selected vehicles (all by default), in config order.
+
+    Integer ``rigid_body`` values are ids (the body is named after the vehicle); the others get
+    ``index + 1``, or the next free id when another vehicle claims that one.
+    """
+    selected = [cfg.vehicle(n).name for n in names] if names else list(cfg.vehicles)
+    every = list(cfg.vehicles.values())
+    taken = {v.rigid_body for v in every if isinstance(v.rigid_body, int)}
+    out: list[tuple[str, str, int]] = []
+    used: set[int] = set()
+    for index, v in enumerate(every):
+        if isinstance(v.rigid_body, int):
+            body_id, name = v.rigid_body, v.name
+        else:
+            body_id, name = index + 1, v.rigid_body
+            while body_id in taken or body_id in used:
+                body_id += 1
+        used.add(body_id)
+        if v.name in selected:
+            out.append((v.name, name, body_id))
+    return out

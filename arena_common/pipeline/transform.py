@@ -1,0 +1,116 @@
+"""The transform's stage: a mocap frame's bodies (Motive's frame) → :class:`~arena_common.core.wire.Pose`
+(arena NED, body FRD), with velocities, and — when the transform decimates — each vehicle's vision.
+
+:func:`frame_transform` is the configured Motive → arena transform (``mocap.up_axis`` then the
+``[calibration]`` table); :class:`PoseConverter` converts one body with it and a
+:class:`~arena_common.geometry.filters.VelocityEstimator` per vehicle (plain float math: several times
+cheaper than numpy for a single pose); :class:`Decimators` runs each configured vehicle's
+:class:`~arena_common.pipeline.vision.VisionFilter` (``[pipeline] decimate = "transform"``).  The frame
+transform service (``services/frame_transform.py``) is their wiring.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from arena_common.bus.session import Lane
+from arena_common.core import keys, wire
+from arena_common.core.config import ArenaConfig
+from arena_common.geometry.filters import VelocityEstimator
+from arena_common.geometry.frames import IDENTITY_QUAT, Calibration, FrameError, FrameTransform, UpAxis
+from arena_common.pipeline.vision import VisionFilter, account
+from arena_common.runtime.service import Service
+
+__all__ = ["Decimators", "PoseConverter", "frame_transform"]
+
+VELOCITY_CUTOFF_HZ = 15.0
+VELOCITY_MAX_GAP_S = 0.1
+_ZERO3: wire.Vec3 = (0.0, 0.0, 0.0)
+
+
+def frame_transform(cfg: ArenaConfig) -> FrameTransform:
+    """The configured Motive → arena transform (``mocap.up_axis`` and the ``[calibration]`` table)."""
+    cal = Calibration.from_degrees(cfg.calibration.yaw_deg, cfg.calibration.offset)
+    return FrameTransform(UpAxis.parse(cfg.mocap.up_axis), cal)
+
+
+@dataclass
+class PoseConverter:
+    """A mocap frame's bodies → Poses: the frame transform plus one velocity estimator per vehicle.
+
+    Not thread-safe: one converter is driven by one thread.
+    """
+
+    transform: FrameTransform
+    cutoff_hz: float = VELOCITY_CUTOFF_HZ
+    max_gap_s: float = VELOCITY_MAX_GAP_S
+    _velocity: dict[str, VelocityEstimator] = field(default_factory=dict, init=False, repr=False)
+
+    def estimator(self, drone: str) -> VelocityEstimator:
+        """The velocity estimator of ``drone`` (created on first use)."""
+        est = self._velocity.get(drone)
+        if est is None:
+            est = self._velocity[drone] = VelocityEstimator(self.cutoff_hz, self.max_gap_s)
+        return est
+
+    def convert(self, frame: wire.MocapFrame, m: wire.MocapBody, tp: int | None = None) -> wire.Pose:
+        """Convert body ``m`` (vehicle ``m.v``) of ``frame``; raises
+        :class:`~arena_common.geometry.frames.FrameError` on bad numbers.
+
+        A valid sample needs a unit quaternion (to within 1 %). An invalid one (``ok`` false) keeps its
+        converted position, and its converted attitude when the quaternion is usable (identity otherwise),
+        and restarts the velocity estimate.
+        """
+        est = self.estimator(m.v)
+        tf = self.transform
+        if m.ok:
+            p, q = tf.pose(m.p, m.q)
+            vel = est.update(frame.t, p, q, True)
+        else:
+            p = tf.position(m.p)
+            try:
+                q = tf.quaternion(m.q)
+            except FrameError:
+                q = IDENTITY_QUAT
+            est.reset()
+            vel = est.last
+        if vel.valid:
+            v, w, vok = vel.linear_ned, vel.angular_frd, True
+        else:  # unknown velocities travel as zeros with vok false (the wire carries no NaN here)
+            v, w, vok = _ZERO3, _ZERO3, False
+        return wire.Pose(
+            t=frame.t,
+            p=p,
+            q=q,
+            ok=m.ok,
+            fn=frame.fn,
+            v=v,
+            w=w,
+            vok=vok,
+            tp=wire.now_ns() if tp is None else tp,
+        )
+
+    def __len__(self) -> int:
+        return len(self._velocity)
+
+
+class Decimators:
+    """The vision filters the transform runs when it decimates (one per configured vehicle)."""
+
+    def __init__(self, svc: Service, cfg: ArenaConfig) -> None:
+        self.svc = svc
+        self.filters = {name: VisionFilter(v.vision_rate) for name, v in cfg.vehicles.items()}
+        self.publishers = {
+            name: svc.bus.stream_publisher(keys.vision(name), wire.Pose, Lane.VISION) for name in self.filters
+        }
+
+    def offer(self, drone: str, pose: wire.Pose) -> None:
+        """Publish ``pose`` as ``drone``'s vision if its filter passes it (unknown bodies have none)."""
+        filt = self.filters.get(drone)
+        if filt is None:
+            return
+        d = filt.process(pose, pose.tp)
+        account(self.svc, drone, pose, d, filt.rc, prefix="vision_")
+        if d.vision is not None:
+            self.publishers[drone].put(d.vision)
+            self.svc.stats.count("vision")
