@@ -23,30 +23,13 @@ from typing import Annotated
 import typer
 
 from arena_common.bus.session import BusOptions
-from arena_common.core.config import ArenaConfig, VehicleSpec
-from arena_common.core.errors import ConfigError
+from arena_common.core.config import ArenaConfig
 from arena_common.runtime.command import Shared, service_command
-from arena_common.runtime.px4_sitl import Px4Sitl, arena_boot_params
+from arena_common.runtime.px4_sitl import Px4Sitl, boot_params, sitl_vehicle
 from arena_common.runtime.service import running
 
 SERVICE = "px4_sitl"
 REBOOT_DELAY = 0.5  # s between px4 exiting and booting again
-
-
-def sitl_vehicle(cfg: ArenaConfig, vehicle: str) -> VehicleSpec:
-    """The vehicle's spec; :class:`ConfigError` unless it is flown by a PX4 SITL instance."""
-    spec = cfg.vehicle(vehicle)
-    if not spec.px4_sitl or spec.px4_instance is None:
-        raise ConfigError(
-            f'{cfg.path}: vehicles.{vehicle}.autopilot is {spec.autopilot!r}, not "px4-sitl": '
-            "no PX4 SITL instance to run for it"
-        )
-    return spec
-
-
-def boot_params(cfg: ArenaConfig, spec: VehicleSpec) -> dict[str, float]:
-    """The boot parameters of a PX4 SITL vehicle (``sim.px4_params`` preset, then its ``px4_params``)."""
-    return arena_boot_params(cfg.sim.px4_params, spec.px4_params)
 
 
 def _print(line: str) -> None:

@@ -33,9 +33,8 @@ from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
 from arena_common.geometry.frames import quat_canonical, quat_from_yaw, quat_multiply, quat_normalize
 from arena_common.runtime.command import Shared, service_command
-from arena_common.runtime.px4_sitl import Px4SitlError, find_build, ports, sih_home
+from arena_common.runtime.px4_sitl import Px4SitlError, boot_params, find_build, ports, sih_home, sitl_vehicle
 from arena_common.runtime.service import running
-from services.px4_sitl import boot_params, sitl_vehicle
 
 SERVICE = "px4_truth"
 RATE = 100.0  # Hz asked of PX4 (its 25 Hz default is a coarse mocap)

@@ -43,7 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from arena_common.core.errors import ArenaError
+from arena_common.core.config import ArenaConfig, VehicleSpec
+from arena_common.core.errors import ArenaError, ConfigError
 from arena_common.mavlink import px4
 from arena_common.mavlink.metadata import MetadataError, load_parameters_json
 from arena_common.runtime.process import child_setup
@@ -582,3 +583,19 @@ def is_true(message: Mapping[str, Any], key: str) -> bool:
 def finite(value: Any) -> bool:
     """A listener number that is neither NaN nor infinite."""
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def sitl_vehicle(cfg: ArenaConfig, vehicle: str) -> VehicleSpec:
+    """The vehicle's spec; :class:`ConfigError` unless it is flown by a PX4 SITL instance."""
+    spec = cfg.vehicle(vehicle)
+    if not spec.px4_sitl or spec.px4_instance is None:
+        raise ConfigError(
+            f'{cfg.path}: vehicles.{vehicle}.autopilot is {spec.autopilot!r}, not "px4-sitl": '
+            "no PX4 SITL instance to run for it"
+        )
+    return spec
+
+
+def boot_params(cfg: ArenaConfig, spec: VehicleSpec) -> dict[str, float]:
+    """The boot parameters of a PX4 SITL vehicle (``sim.px4_params`` preset, then its ``px4_params``)."""
+    return arena_boot_params(cfg.sim.px4_params, spec.px4_params)
