@@ -21,7 +21,7 @@ import typer
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig
 from arena_common.mocap.client import MocapError
-from arena_common.mocap.sources import MocapSource, open_source
+from arena_common.mocap.sources import MocapSource, describe_source, open_source
 from arena_common.pipeline.ingest import Ingest
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.service import running
@@ -42,7 +42,7 @@ def main(
         source: MocapSource | None = None
         backoff = 0.5
         finished = False
-        svc.log.info("source %s (%s), %d vehicles", cfg.mocap.source, _describe(cfg), len(cfg.vehicles))
+        svc.log.info("source %s (%s), %d vehicles", cfg.mocap.source, describe_source(cfg), len(cfg.vehicles))
         try:
             while not svc.stopped:
                 if source is None:
@@ -66,16 +66,6 @@ def main(
         finally:
             if source is not None:
                 source.close()
-
-
-def _describe(cfg: ArenaConfig) -> str:
-    m = cfg.mocap
-    if m.source == "csv":
-        return m.csv_file
-    if m.source == "motioncapture":
-        return f"{m.motioncapture_type} at {m.server}"
-    mode = f"multicast {m.group}:{m.data_port}" if m.multicast else "unicast"
-    return f"server {m.server}:{m.command_port}, {mode}, interface {m.interface}"
 
 
 @service_command

@@ -74,7 +74,6 @@ NAN = math.nan
 _MANUAL_MAINS = frozenset(
     {px4.MAIN_MANUAL, px4.MAIN_ALTCTL, px4.MAIN_POSCTL, px4.MAIN_ACRO, px4.MAIN_STABILIZED}
 )
-MAV_CMD_PREFLIGHT_STORAGE = 245  # param1 1: write the parameters to permanent storage now
 #: Results the autopilot gave (COMMAND_ACK, or acknowledged but not done) whose reason it may still be
 #: sending: the answer waits up to TEXT_GRACE_S for its STATUSTEXT.
 _SAID_BY_AUTOPILOT = frozenset({"DENIED", "TEMPORARILY_REJECTED", "FAILED", "UNSUPPORTED"})
@@ -429,7 +428,7 @@ class CommandExecutor:
         if report.get("written"):
             # PX4 saves changed parameters a moment later (measured: not yet after 0.2 s, done after 3 s):
             # a power-cycle right after setup would lose them.  Save now.
-            saved = self.commander.command(MAV_CMD_PREFLIGHT_STORAGE, (1,), deadline)
+            saved = self.commander.command(px4.MAV_CMD_PREFLIGHT_STORAGE, (1,), deadline)
             report = {**report, "saved": saved}
             if saved != "ACCEPTED":
                 self.events.emit(

@@ -387,15 +387,24 @@ EKF2_HGT_REF_VISION: Final = 3
 COM_RC_IN_MODE_DISABLED: Final = 4
 
 # --- Commands and results ---------------------------------------------------------------------------
+# The one home of the MAVLink numbers the arena uses (pymavlink's common dialect has them all: a test
+# checks every MAV_* name here against it; the dialect itself is not imported by the user's API).
 MAV_CMD_NAV_RETURN_TO_LAUNCH: Final = 20
 MAV_CMD_NAV_LAND: Final = 21
 MAV_CMD_NAV_TAKEOFF: Final = 22
 MAV_CMD_DO_SET_MODE: Final = 176
+MAV_CMD_DO_CHANGE_SPEED: Final = 178
+MAV_CMD_DO_SET_HOME: Final = 179
 MAV_CMD_DO_FLIGHTTERMINATION: Final = 185
+MAV_CMD_DO_REPOSITION: Final = 192
+MAV_CMD_DO_SET_MISSION_CURRENT: Final = 224
+MAV_CMD_PREFLIGHT_STORAGE: Final = 245  # param1 0: read, 1: write the parameters to permanent storage
 MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN: Final = 246
+MAV_CMD_MISSION_START: Final = 300
 MAV_CMD_COMPONENT_ARM_DISARM: Final = 400
 MAV_CMD_SET_MESSAGE_INTERVAL: Final = 511
 MAV_CMD_REQUEST_MESSAGE: Final = 512
+MAV_CMD_REQUEST_PROTOCOL_VERSION: Final = 519
 MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: Final = 520
 
 #: param2 of MAV_CMD_COMPONENT_ARM_DISARM that forces arming/disarming (a forced disarm in the air kills

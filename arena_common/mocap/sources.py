@@ -38,11 +38,14 @@ from arena_common.mocap.client import MocapError, NatNetClient, TimedFrame
 from arena_common.mocap.natnet import RigidBody
 
 __all__ = [
+    "SOURCES",
     "CsvTake",
     "CsvTakeError",
     "CsvTakeSource",
     "MocapSource",
     "MotionCaptureSource",
+    "SourceKind",
+    "describe_source",
     "open_source",
     "read_csv_take",
 ]
@@ -530,6 +533,66 @@ def resolve_csv(cfg: ArenaConfig) -> Path:
     return beside if beside.exists() else p
 
 
+@dataclass(frozen=True, slots=True)
+class SourceKind:
+    """One kind of ``mocap.source``: how to build it from the config, and how to say where it reads."""
+
+    build: Callable[[ArenaConfig, RejectHook | None, CountHook | None, float], MocapSource]
+    describe: Callable[[ArenaConfig], str]
+
+
+def _natnet(
+    cfg: ArenaConfig, on_reject: RejectHook | None, on_count: CountHook | None, loss: float
+) -> MocapSource:
+    m = cfg.mocap
+    return NatNetClient(
+        m.server,
+        command_port=m.command_port,
+        interface=m.interface,
+        multicast=m.multicast,
+        group=m.group if m.multicast else None,
+        data_port=m.data_port,
+        loss_timeout=loss,
+        on_reject=on_reject,
+        on_count=on_count,
+    )
+
+
+def _motioncapture(
+    cfg: ArenaConfig, on_reject: RejectHook | None, on_count: CountHook | None, loss: float
+) -> MocapSource:
+    kind, params = motioncapture_params(cfg.mocap)
+    return MotionCaptureSource(kind, params, loss_timeout=loss, on_reject=on_reject, on_count=on_count)
+
+
+def _natnet_where(cfg: ArenaConfig) -> str:
+    m = cfg.mocap
+    mode = f"multicast {m.group}:{m.data_port}" if m.multicast else "unicast"
+    return f"server {m.server}:{m.command_port}, {mode}, interface {m.interface}"
+
+
+#: Every ``mocap.source``, by name.
+SOURCES: dict[str, SourceKind] = {
+    "natnet": SourceKind(_natnet, _natnet_where),
+    "motioncapture": SourceKind(
+        _motioncapture, lambda c: f"{c.mocap.motioncapture_type} at {c.mocap.server}"
+    ),
+    "csv": SourceKind(
+        lambda c, r, n, _loss: CsvTakeSource(resolve_csv(c), on_reject=r, on_count=n),
+        lambda c: c.mocap.csv_file,
+    ),
+}
+
+
+def _kind(cfg: ArenaConfig) -> SourceKind:
+    kind = SOURCES.get(cfg.mocap.source)
+    if kind is None:
+        raise MocapError(
+            f"{cfg.path}: unknown mocap.source {cfg.mocap.source!r} (known: {', '.join(SOURCES)})"
+        )
+    return kind
+
+
 def open_source(
     cfg: ArenaConfig,
     *,
@@ -538,27 +601,12 @@ def open_source(
     loss_timeout: float = 1.0,
 ) -> MocapSource:
     """Build the source ``cfg.mocap.source`` names (not opened yet)."""
-    spec = cfg.mocap
-    if spec.source == "natnet":
-        return NatNetClient(
-            spec.server,
-            command_port=spec.command_port,
-            interface=spec.interface,
-            multicast=spec.multicast,
-            group=spec.group if spec.multicast else None,
-            data_port=spec.data_port,
-            loss_timeout=loss_timeout,
-            on_reject=on_reject,
-            on_count=on_count,
-        )
-    if spec.source == "motioncapture":
-        kind, params = motioncapture_params(spec)
-        return MotionCaptureSource(
-            kind, params, loss_timeout=loss_timeout, on_reject=on_reject, on_count=on_count
-        )
-    if spec.source == "csv":
-        return CsvTakeSource(resolve_csv(cfg), on_reject=on_reject, on_count=on_count)
-    raise MocapError(f"{cfg.path}: unknown mocap.source {spec.source!r}")
+    return _kind(cfg).build(cfg, on_reject, on_count, loss_timeout)
+
+
+def describe_source(cfg: ArenaConfig) -> str:
+    """Where the configured source reads (``server 10.0.0.5:1510, multicast 239.255.42.99:1511, …``)."""
+    return _kind(cfg).describe(cfg)
 
 
 if __name__ == "__main__":

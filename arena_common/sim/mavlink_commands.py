@@ -36,14 +36,6 @@ __all__ = ["CommandsMixin"]
 
 NAN = math.nan
 
-MAV_CMD_NAV_RETURN_TO_LAUNCH: Final = 20
-MAV_CMD_PREFLIGHT_STORAGE: Final = 245  # param1 0: read, 1: write the parameters to permanent storage
-MAV_CMD_DO_CHANGE_SPEED: Final = 178
-MAV_CMD_DO_SET_HOME: Final = 179
-MAV_CMD_DO_REPOSITION: Final = 192
-MAV_CMD_DO_SET_MISSION_CURRENT: Final = 224
-MAV_CMD_MISSION_START: Final = 300
-MAV_CMD_REQUEST_PROTOCOL_VERSION: Final = 519
 _KNOWN_MAINS: Final = frozenset(
     {
         px4.MAIN_MANUAL,
@@ -95,7 +87,7 @@ class CommandsMixin(AutopilotState):
     ) -> None:
         broadcast_ok = command in (
             px4.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
-            MAV_CMD_REQUEST_PROTOCOL_VERSION,
+            px4.MAV_CMD_REQUEST_PROTOCOL_VERSION,
         )
         if not self._addressed(msg.target_system, msg.target_component, broadcast_ok):
             return
@@ -138,7 +130,7 @@ class CommandsMixin(AutopilotState):
             if self.mode == (R.MAIN_AUTO, R.AUTO_LAND):
                 self._statustext(R.MAV_SEVERITY_INFO, "Landing at current position", tab=True)
             return result
-        if command == MAV_CMD_NAV_RETURN_TO_LAUNCH:
+        if command == px4.MAV_CMD_NAV_RETURN_TO_LAUNCH:
             return self._change_mode((R.MAIN_AUTO, R.AUTO_RTL), t)
         if command == R.MAV_CMD_DO_FLIGHTTERMINATION:
             if finite(p[0]) and p[0] > 0.5:
@@ -148,7 +140,7 @@ class CommandsMixin(AutopilotState):
             return R.MAV_RESULT_DENIED
         if command == R.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
             return self._cmd_reboot(p)
-        if command == MAV_CMD_PREFLIGHT_STORAGE:
+        if command == px4.MAV_CMD_PREFLIGHT_STORAGE:
             # PX4 saves on param1 1 (its parameters persist already; so do the simulated vehicle's).
             return R.MAV_RESULT_ACCEPTED if finite(p[0]) and int(p[0]) in (0, 1) else R.MAV_RESULT_DENIED
         if command == R.MAV_CMD_SET_MESSAGE_INTERVAL:
@@ -167,19 +159,19 @@ class CommandsMixin(AutopilotState):
         if command == R.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             self._request_message(148)
             return R.MAV_RESULT_ACCEPTED
-        if command == MAV_CMD_REQUEST_PROTOCOL_VERSION:
+        if command == px4.MAV_CMD_REQUEST_PROTOCOL_VERSION:
             return R.MAV_RESULT_ACCEPTED  # PX4 acknowledges; no PROTOCOL_VERSION was seen from SITL
-        if command == MAV_CMD_DO_CHANGE_SPEED:
+        if command == px4.MAV_CMD_DO_CHANGE_SPEED:
             if finite(p[1]) and p[1] > 0:
                 self._cruise_speed = min(p[1], 100.0)
             return R.MAV_RESULT_ACCEPTED
-        if command == MAV_CMD_DO_REPOSITION:
+        if command == px4.MAV_CMD_DO_REPOSITION:
             return self._cmd_reposition(p, t)
-        if command == MAV_CMD_DO_SET_HOME:
+        if command == px4.MAV_CMD_DO_SET_HOME:
             return self._cmd_set_home(p)
-        if command == MAV_CMD_MISSION_START:
+        if command == px4.MAV_CMD_MISSION_START:
             return self._cmd_mission_start(p, t)
-        if command == MAV_CMD_DO_SET_MISSION_CURRENT:
+        if command == px4.MAV_CMD_DO_SET_MISSION_CURRENT:
             seq = as_int(p[0], 0, 0xFFFF)
             ok = seq is not None and self._mission_set_current(seq)
             return R.MAV_RESULT_ACCEPTED if ok else R.MAV_RESULT_DENIED

@@ -6,13 +6,14 @@ from __future__ import annotations
 import struct
 from typing import Any, Final
 
+from arena_common.mavlink import px4
 from arena_common.mavlink.link import mavlink2
 
 # --- MAVLink ids and enums --------------------------------------------------------------------------
 FILE_TRANSFER_PROTOCOL: Final = 110
 COMPONENT_INFORMATION: Final = 395
 COMPONENT_METADATA: Final = 397
-MAV_CMD_REQUEST_MESSAGE: Final = 512
+MAV_CMD_REQUEST_MESSAGE: Final = px4.MAV_CMD_REQUEST_MESSAGE
 #: The messages :meth:`MetadataClient.on_message` wants from the link's reader.
 HANDLED_MESSAGES: Final = frozenset({FILE_TRANSFER_PROTOCOL, COMPONENT_INFORMATION, COMPONENT_METADATA})
 
