@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from arena_common.core import wire
+from arena_common.geometry.quat import quat_yaw
 from arena_common.mavlink import px4
 
 __all__ = [
@@ -160,8 +161,7 @@ class PoseReading(_Timed):
         """Heading [rad] from the attitude (None without one)."""
         if self.q is None:
             return None
-        w, x, y, z = self.q
-        return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+        return quat_yaw(self.q)
 
 
 def _vec(fields: Mapping[str, Any], *names: str, scale: float = 1.0) -> Vec3:

@@ -15,6 +15,8 @@ import struct
 from collections.abc import Mapping, Sequence
 from typing import Any, Final
 
+from arena_common.geometry.quat import FrameError, quat_normalize, quat_rotate_inverse
+
 __all__ = [
     "ARENA_REQUIRED_PARAMS",
     "PX4_DEFAULTS",
@@ -556,17 +558,18 @@ def odometry_args(
         raise Px4Error("position_ned needs 3 values and q_frd 4 (w, x, y, z)")
     if time_usec < 0:
         raise Px4Error(f"time_usec must be >= 0, got {time_usec}")
-    w, x, y, z = (float(c) for c in q_frd)
-    norm = math.sqrt(w * w + x * x + y * y + z * z)
-    if not norm > 1e-6 or not math.isfinite(norm):
+    try:
+        w, x, y, z = quat_normalize(q_frd)
+    except FrameError:
+        raise Px4Error(f"q_frd is not a rotation quaternion: {tuple(q_frd)}") from None
+    if not all(map(math.isfinite, (w, x, y, z))):
         raise Px4Error(f"q_frd is not a rotation quaternion: {tuple(q_frd)}")
-    w, x, y, z = w / norm, x / norm, y / norm, z / norm
     if velocity_ned is None:
         vx = vy = vz = math.nan
     else:
         if len(velocity_ned) != 3:
             raise Px4Error("velocity_ned needs 3 values")
-        vx, vy, vz = _rotate_inverse((w, x, y, z), velocity_ned)
+        vx, vy, vz = quat_rotate_inverse((w, x, y, z), [float(c) for c in velocity_ned])
     if angular_velocity_frd is None:
         rs = ps = ys = math.nan
     else:
@@ -591,24 +594,3 @@ def odometry_args(
         "estimator_type": estimator_type,
         "quality": int(quality),
     }
-
-
-def _rotate_inverse(q: Sequence[float], v: Sequence[float]) -> tuple[float, float, float]:
-    """Rotate world vector ``v`` into the body frame of unit quaternion ``q`` (w, x, y, z): R(q)^T v."""
-    w, x, y, z = q
-    vx, vy, vz = (float(c) for c in v)
-    # R^T v via the rotation matrix of q.
-    r00 = 1 - 2 * (y * y + z * z)
-    r01 = 2 * (x * y - w * z)
-    r02 = 2 * (x * z + w * y)
-    r10 = 2 * (x * y + w * z)
-    r11 = 1 - 2 * (x * x + z * z)
-    r12 = 2 * (y * z - w * x)
-    r20 = 2 * (x * z - w * y)
-    r21 = 2 * (y * z + w * x)
-    r22 = 1 - 2 * (x * x + y * y)
-    return (
-        r00 * vx + r10 * vy + r20 * vz,
-        r01 * vx + r11 * vy + r21 * vz,
-        r02 * vx + r12 * vy + r22 * vz,
-    )
