@@ -394,7 +394,8 @@ def test_command_refusals_errors_and_params(make_rig: Callable[..., Rig]) -> Non
         ("mode", {"mode": "FOO"}, "unknown PX4 mode"),
         ("goto", {"p": "north"}, "must be [north, east, down]"),
         ("takeoff", {"height": "high"}, "finite number"),
-        ("param_set", {"name": "MPC_XY_P"}, "missing argument 'value'"),
+        ("param_set", {"name": "MPC_XY_P"}, "param_set: argument 'value' is missing"),
+        ("takeoff", {"height": 1.0, "speed": 2}, "takeoff: unknown argument 'speed' (it takes: height)"),
         ("start", {}, "not a vehicle operation"),
     )
     for op, args, text in bad:

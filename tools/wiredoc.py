@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from arena_common.core import keys, wire
+from arena_common.core.ops import OPS
 from tools.vectors import Vector, WireDocError, vectors
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -614,7 +615,20 @@ def _commands_section() -> list[str]:
         "the query ends means nobody serves that key (the vehicle's gateway is not running): the Python "
         "client reports it as `TIMEOUT` at once, without waiting.",
         "",
-        f"Operations (`op`): {ops}. {wire.Command.DOC.split(';', 1)[1].strip()}",
+        f"Operations (`op`): {ops}. Their arguments (`args`, a map), checked at both ends against one "
+        "table (`arena_common/core/ops.py`; an argument it does not name, or out of its type or range, "
+        "is an `ERROR` naming it):",
+        "",
+        "| op | answered by | args | what it does | Python |",
+        "|---|---|---|---|---|",
+        *(
+            f"| `{o.name}` | {', '.join(o.targets)} | "
+            + ("<br>".join(_md_escape(a.describe()) for a in o.args) or "—")
+            + f" | {_md_escape(o.doc)} | "
+            + (f"`vehicle.{o.client}()`" if o.client else "—")
+            + " |"
+            for o in OPS.values()
+        ),
         "",
         "Results (`result`):",
         "",

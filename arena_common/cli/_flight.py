@@ -16,7 +16,7 @@ from arena_common.bus.session import Bus
 from arena_common.cli._globals import config as global_config
 from arena_common.cli._globals import current as global_options
 from arena_common.client import Arena, Vehicle
-from arena_common.core import keys, wire
+from arena_common.core import keys, ops, wire
 from arena_common.core.errors import ArenaError
 
 console = Console()
@@ -326,8 +326,12 @@ def register(app: typer.Typer) -> None:
     """Add the flight commands to ``app``."""
     app.command("status")(status)
     app.command("top")(top)
+    # One command per operation of the table that flies a vehicle, its help the table's words.
     for fn in (arm, disarm, takeoff, land, hold, kill):
-        app.command(fn.__name__)(fn)
+        app.command(
+            fn.__name__, help=f"{ops.OPS[fn.__name__].doc[:1].upper()}{ops.OPS[fn.__name__].doc[1:]}."
+        )(fn)
     # Heights above the floor are negative downs: let "-1.0" be a value, not an unknown option.
-    app.command("goto", context_settings={"ignore_unknown_options": True})(goto)
+    app.command("goto", help=f"{ops.OPS['goto'].doc[:1].upper()}{ops.OPS['goto'].doc[1:]}.",
+                context_settings={"ignore_unknown_options": True})(goto)  # fmt: skip
     app.command("estop")(estop)

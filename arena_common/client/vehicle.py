@@ -47,7 +47,7 @@ from arena_common.client.types import (
     PoseReading,
     Status,
 )
-from arena_common.core import keys, wire
+from arena_common.core import keys, ops, wire
 from arena_common.core.errors import (
     CommandRejected,
     CommandTimeout,
@@ -381,6 +381,7 @@ class Vehicle:
                 result="NOT_PERMITTED",
                 drone=self.name,
             )
+        ops.check(op, args)  # the gateway takes what the table says, no more: an OpError names what is wrong
         cmd = wire.Command(op=op, args=args, src=self.arena.src, timeout=timeout, t=wire.now_ns())
         res = self.arena.bus.request(keys.cmd(self.name), cmd, timeout)
         if res.ok:

@@ -22,6 +22,7 @@ from msgspec import Meta
 
 from arena_common.core import keys
 from arena_common.core.errors import InvalidName, PayloadError
+from arena_common.core.ops import OPS
 from arena_common.core.payload import (
     ENCODING_PREFIX,
     F64,
@@ -287,25 +288,7 @@ class Event(Payload, frozen=True):
     data: Annotated[Map, _doc("Details")] = _always({})
 
 
-COMMAND_OPS = (
-    "arm",
-    "disarm",
-    "kill",
-    "takeoff",
-    "land",
-    "hold",
-    "mode",
-    "goto",
-    "reboot",
-    "param_get",
-    "param_set",
-    "check",
-    "setup",
-    "ping",
-    "start",
-    "stop",
-    "time",
-)
+COMMAND_OPS = tuple(OPS)  # every operation: arena_common/core/ops.py
 
 
 @payload

@@ -4,49 +4,9 @@ Every :class:`~arena_common.core.wire.Command` on ``arena/<drone>/cmd`` is answe
 :class:`~arena_common.core.wire.CommandResult` whose ``result`` is the autopilot's COMMAND_ACK result
 (``ACCEPTED``, ``TEMPORARILY_REJECTED``, ``DENIED``…), ``TIMEOUT`` after the retries, ``REFUSED`` with the
 reason when the arena's rules forbid it, ``FAILED`` when the autopilot accepted but did not do it, or
-``ERROR`` for a malformed request.  Its ``t`` is the gateway's clock when answered: every State the
-gateway stamps from then on shows what the command did (a client waits for one).  Operations and their
-``args``:
-
-=============  ==========================================  ==================================================
-op             args                                        what happens
-=============  ==========================================  ==================================================
-arm            —                                           refused without heartbeat, with the arena
-                                                           parameters unset (unless ``require_setup`` is
-                                                           false), with this host's clock offset to
-                                                           the mocap host's unknown or uncertain
-                                                           (the reason starts with ``clock:``) or
-                                                           with stale vision; then
-                                                           COMPONENT_ARM_DISARM, confirmed by the heartbeat
-disarm         —                                           COMPONENT_ARM_DISARM(0) (PX4 refuses in the air)
-kill           —                                           forced disarm (21196): motors stop, even in the air
-takeoff        height (m, default 1.0)                     MIS_TAKEOFF_ALT := height, then NAV_TAKEOFF with
-                                                           NaN altitude (PX4 climbs to MIS_TAKEOFF_ALT above
-                                                           home, no global frame needed), AUTO.TAKEOFF
-land           —                                           NAV_LAND at the current position (AUTO.LAND)
-hold           —                                           DO_SET_MODE AUTO.LOITER, confirmed by heartbeat
-mode           mode (PX4 name: OFFBOARD, AUTO.LAND…)       DO_SET_MODE, confirmed by heartbeat; OFFBOARD is
-                                                           refused unless a setpoint stream is live, manual
-                                                           modes (POSCTL, ALTCTL…) always
-goto           p [n, e, d] m, yaw (rad, default current),  the gateway streams a position carrot toward p
-               tol (m, default 0.1), wait (bool)           (refused outside the safe volume or on the
-                                                           ground), switches to OFFBOARD, and holds p until
-                                                           a user stream or another mode takes over; with
-                                                           ``wait`` it answers once within ``tol``
-reboot         —                                           PREFLIGHT_REBOOT_SHUTDOWN(1), refused when armed;
-                                                           answers once the autopilot is back (its boot
-                                                           clock restarted)
-param_get      name                                        value {name, value, type}
-param_set      name, value                                 written in the vehicle's type, read back
-check          —                                           the arena parameters, value {ok, params: …}
-setup          —                                           refused when armed; writes the differing ones,
-                                                           saves them (PREFLIGHT_STORAGE); when one needs a
-                                                           reboot (the autopilot's own metadata says
-                                                           which), reboots the autopilot and
-                                                           waits for it; then checks every value again.
-                                                           Until that reboot, arming is refused
-ping           —                                           value {link, mode, armed, rtt, …}
-=============  ==========================================  ==================================================
+``ERROR`` for a malformed request.  The operations and their arguments are the table of
+:mod:`arena_common.core.ops` (checked by :func:`~arena_common.core.ops.check` before anything is done;
+``docs/wire.md`` prints it); what each does to the autopilot is in its method below.
 """
 
 from __future__ import annotations
@@ -54,9 +14,9 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, ClassVar
 
-from arena_common.core import wire
+from arena_common.core import ops, wire
 from arena_common.core.config import ArenaSpec, VehicleSpec
 from arena_common.gateway.events import EventSink
 from arena_common.gateway.origin import GlobalOrigin
@@ -93,32 +53,26 @@ def _refused(reason: str) -> wire.CommandResult:
     return wire.CommandResult(ok=False, result="REFUSED", reason=reason)
 
 
-def _number(args: Mapping[str, Any], name: str, default: float | None = None) -> float:
-    value = args.get(name, default)
-    if value is None:
-        raise _BadArgs(f"missing argument {name!r}")
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise _BadArgs(f"argument {name!r} must be a finite number, got {value!r}")
-    return float(value)
-
-
-def _vec3(args: Mapping[str, Any], name: str) -> tuple[float, float, float]:
-    value = args.get(name)
-    if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise _BadArgs(f"argument {name!r} must be [north, east, down] in metres, got {value!r}")
-    out = tuple(_number({"x": x}, "x") for x in value)
-    return out[0], out[1], out[2]
-
-
-def _string(args: Mapping[str, Any], name: str) -> str:
-    value = args.get(name)
-    if not isinstance(value, str) or not value:
-        raise _BadArgs(f"argument {name!r} must be a non-empty string, got {value!r}")
-    return value
-
-
 class CommandExecutor:
     """Answers the commands of one vehicle (see the module's table); :meth:`handle` serves the queryable."""
+
+    #: The method answering each vehicle operation of :data:`arena_common.core.ops.OPS`.
+    HANDLERS: ClassVar[dict[str, str]] = {
+        "arm": "_arm",
+        "disarm": "_disarm",
+        "kill": "_kill",
+        "takeoff": "_takeoff",
+        "land": "_land",
+        "hold": "_hold",
+        "mode": "_mode",
+        "goto": "_goto",
+        "reboot": "_reboot",
+        "param_get": "_param_get",
+        "param_set": "_param_set",
+        "check": "_check",
+        "setup": "_setup",
+        "ping": "_ping",
+    }
 
     def __init__(
         self,
@@ -153,20 +107,7 @@ class CommandExecutor:
         self.goto_tolerance = goto_tolerance
         self.clock_problem = clock_problem
         self._ops: dict[str, Callable[[Mapping[str, Any], float], wire.CommandResult]] = {
-            "arm": self._arm,
-            "disarm": self._disarm,
-            "kill": self._kill,
-            "takeoff": self._takeoff,
-            "land": self._land,
-            "hold": lambda a, d: self._set_mode("AUTO.LOITER", d),
-            "mode": self._mode,
-            "goto": self._goto,
-            "reboot": self._reboot,
-            "param_get": self._param_get,
-            "param_set": self._param_set,
-            "check": self._check,
-            "setup": self._setup,
-            "ping": self._ping,
+            op: getattr(self, method) for op, method in self.HANDLERS.items()
         }
 
     # -- entry ---------------------------------------------------------------------------------------
@@ -176,7 +117,10 @@ class CommandExecutor:
         deadline = time.monotonic() + max(0.5, cmd.timeout - 0.3)
         op = self._ops.get(cmd.op)
         if op is None:
-            result = wire.CommandResult(False, "ERROR", f"{cmd.op!r} is not a vehicle operation")
+            known = ", ".join(o.name for o in ops.vehicle_ops())
+            result = wire.CommandResult(
+                False, "ERROR", f"{cmd.op!r} is not a vehicle operation (known: {known})"
+            )
         elif cmd.op != "ping" and not self.commander.link.can_send():
             heard = (
                 "link lost: no heartbeat from the autopilot" if self.state.hb_count else "nothing heard yet"
@@ -184,7 +128,9 @@ class CommandExecutor:
             result = _refused(f"no link to the autopilot ({heard})")
         else:
             try:
-                result = op(cmd.args, deadline)
+                result = op(ops.check(cmd.op, cmd.args), deadline)
+            except ops.OpError as exc:
+                result = wire.CommandResult(False, "ERROR", str(exc))
             except (_BadArgs, px4.Px4Error) as exc:
                 result = wire.CommandResult(False, "ERROR", f"{cmd.op}: {exc}")
         if not result.ok and result.result not in ("REFUSED", "ERROR"):
@@ -291,7 +237,7 @@ class CommandExecutor:
         return _result(self.commander.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, params, deadline))
 
     def _takeoff(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
-        height = _number(args, "height", 1.0)
+        height = args["height"]
         ceiling = -self.arena.safe_box()[2][0]
         if not 0.2 <= height <= ceiling:
             return _refused(f"takeoff height {height:.2f} m outside [0.20, {ceiling:.2f}] (the safe volume)")
@@ -304,8 +250,11 @@ class CommandExecutor:
     def _land(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
         return _result(self.commander.command(px4.MAV_CMD_NAV_LAND, (0, 0, 0, NAN, NAN, NAN, NAN), deadline))
 
+    def _hold(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        return self._set_mode("AUTO.LOITER", deadline)
+
     def _mode(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
-        main, sub = px4.mode_from_name(_string(args, "mode"))
+        main, sub = px4.mode_from_name(args["mode"])
         name = px4.mode_name(main, sub)
         if main in _MANUAL_MAINS:
             return _refused(f"{name} needs manual control input, which the arena never sends")
@@ -326,10 +275,10 @@ class CommandExecutor:
         return self._set_mode(name, deadline)
 
     def _goto(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
-        goal = _vec3(args, "p")
-        yaw = _number(args, "yaw") if args.get("yaw") is not None else self.state.yaw()
-        tol = _number(args, "tol", self.goto_tolerance)
-        wait = bool(args.get("wait", False))
+        goal = args["p"]
+        yaw = args["yaw"] if args["yaw"] is not None else self.state.yaw()
+        tol = args["tol"] if args["tol"] is not None else self.goto_tolerance
+        wait = args["wait"]
         problem = yaw_problem(yaw)
         if problem:  # every argument is checked before the stream starts
             raise _BadArgs(problem)
@@ -382,7 +331,7 @@ class CommandExecutor:
         return _result("ACCEPTED", reboots=self.state.reboots)
 
     def _param_get(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
-        name = _string(args, "name")
+        name = args["name"]
         px4.param_name_bytes(name)
         got = self.params.read([name], deadline)
         if name not in got:
@@ -391,8 +340,7 @@ class CommandExecutor:
         return _result("ACCEPTED", name=name, value=value, type=ptype)
 
     def _param_set(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
-        name = _string(args, "name")
-        want = _number(args, "value")
+        name, want = args["name"], args["value"]
         px4.param_name_bytes(name)
         got = self.params.read([name], deadline)
         if name not in got:
