@@ -376,6 +376,11 @@ def test_motive_restart_ingest_recovers(rig: Rig) -> None:
     t_ready = time.monotonic()
     t_vision = vision_back(rig, t_start)
     fused = rig.world.when("d1", lambda s: s.fusing, t_vision, 20.0, "vision fused again")
+    # What the design promises, in order: the failsafe lands the vehicle, the ingest reconnects by itself
+    # (its back-off is at most 4 s, the bounds leave room for a busy machine) and vision is fused again.
+    assert to_land < 5.0, f"position-loss failsafe after {to_land:.2f} s"
+    assert t_ready - t_start < 30.0 and t_vision >= t_ready and fused >= t_vision
+    assert t_vision - t_ready < 15.0, f"vision back {t_vision - t_ready:.2f} s after Motive was ready"
     record(
         "Motive restart (emulator kill -9, back 1 s later)",
         failsafe_after_s=to_land,

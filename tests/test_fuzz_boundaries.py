@@ -679,13 +679,6 @@ def test_the_health_check_passes_on_a_healthy_gateway(gw: GatewayRig, deaths: Th
     gw.event(t0, "estop (fuzz)")
 
 
-BUG_WRONG_TYPE = (
-    "wire.decode_any picks the payload type from the sender's encoding, not the key, and Gateway's "
-    "_vision_loop, SetpointForwarder.run and Gateway._estop_loop do not check the type: the thread dies "
-    "(AttributeError) and that input is dead until the gateway restarts"
-)
-
-
 @pytest.mark.parametrize(
     ("key", "payload"),
     [

@@ -6,7 +6,6 @@ services with ``arena up`` on a private config and kills its children.
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import re
 import signal
@@ -361,20 +360,8 @@ def test_children_die_with_a_killed_supervisor(
 
 # -- the real arena -----------------------------------------------------------------------------------------
 
-REAL_MODULES = (
-    "services.mocap_ingest",
-    "services.sim_mocap",
-    "services.mavlink_gateway",
-    "services.downsampler",
-)
-
-
-def _missing_services() -> list[str]:
-    return [m for m in REAL_MODULES if importlib.util.find_spec(m) is None]
-
 
 @pytest.mark.system
-@pytest.mark.skipif(bool(_missing_services()), reason=f"services not written yet: {_missing_services()}")
 def test_arena_up_runs_restarts_and_stops_the_real_services(
     tmp_path: Path, processes: Callable[..., Proc]
 ) -> None:
@@ -457,9 +444,6 @@ def test_arena_up_runs_restarts_and_stops_the_real_services(
                 pass
 
 
-@pytest.mark.skipif(
-    importlib.util.find_spec("services.sim_mocap") is None, reason="services.sim_mocap not written yet"
-)
 def test_sim_world_runs_both_parts_and_stops(
     tmp_path: Path, router_endpoint: str, processes: Callable[..., Proc]
 ) -> None:
