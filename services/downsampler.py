@@ -20,7 +20,7 @@ from typing import Annotated
 
 import typer
 
-from arena_common.bus.session import BusOptions, Lane
+from arena_common.bus.session import BusOptions, Lane, typed
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
@@ -55,23 +55,13 @@ def main(
         svc.log.info("%s → %s at %.1f Hz", keys.pose(vehicle), keys.vision(vehicle), filt.rate_hz)
         sub = svc.bus.subscribe(keys.pose(vehicle), capacity=QUEUE_CAPACITY, ring=False)
         pub = svc.bus.stream_publisher(keys.vision(vehicle), wire.Pose, Lane.VISION)
-        dropped = 0
         while not svc.stopped:
-            item = sub.get(0.2)
-            if sub.channel.dropped != dropped:
-                svc.stats.count("dropped", sub.channel.dropped - dropped)
-                dropped = sub.channel.dropped
-            if item is None:
+            item = svc.read(sub, 0.2)
+            pose = typed(item, wire.Pose, svc.reject) if item is not None else None
+            if item is None or pose is None:
                 continue
-            svc.stats.count("in")
-            if item.error is not None:
-                svc.reject("bad_payload", str(item.error))
-                continue
-            if not isinstance(item.payload, wire.Pose):
-                svc.reject("wrong_type", f"{item.key} carried {type(item.payload).__name__}, not Pose")
-                continue
-            d = filt.process(item.payload)
-            account(svc, vehicle, item.payload, d, filt.rc)
+            d = filt.process(pose)
+            account(svc, vehicle, pose, d, filt.rc)
             if d.vision is not None:
                 pub.put(d.vision)
                 svc.stats.count("out")

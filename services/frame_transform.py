@@ -29,7 +29,7 @@ import time
 
 import typer
 
-from arena_common.bus.session import BusOptions, Lane, Publisher
+from arena_common.bus.session import BusOptions, Lane, Publisher, typed
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.geometry.frames import FrameError
@@ -67,21 +67,10 @@ def main(
         sub = svc.bus.subscribe(SUBSCRIPTION, capacity=QUEUE_CAPACITY, ring=False)
         publishers: dict[str, Publisher[wire.Pose]] = {}
         shed_ns = int(cfg.pipeline.shed_after * 1e9)
-        dropped = 0
         while not svc.stopped:
-            item = sub.get(0.2)
-            if sub.channel.dropped != dropped:  # frames the queue could not hold (we fell behind)
-                svc.stats.count("dropped", sub.channel.dropped - dropped)
-                dropped = sub.channel.dropped
-            if item is None:
-                continue
-            svc.stats.count("frames")
-            if item.error is not None:
-                svc.reject("bad_payload", str(item.error))
-                continue
-            frame = item.payload
-            if not isinstance(frame, wire.MocapFrame):
-                svc.reject("wrong_type", f"{item.key} carried {type(frame).__name__}, not MocapFrame")
+            item = svc.read(sub, 0.2, count="frames")  # dropped: frames the queue could not hold
+            frame = typed(item, wire.MocapFrame, svc.reject) if item is not None else None
+            if item is None or frame is None:
                 continue
             svc.stats.count("in", len(frame.b))  # poses in: what the ingest counted out
             behind = decimators is not None and shed_ns and time.time_ns() - item.t_recv > shed_ns

@@ -202,6 +202,21 @@ class Received(Generic[P]):
     encoding: str = ""
 
 
+def typed(item: Received[Any], ptype: type[P], reject: Callable[[str, str], None]) -> P | None:
+    """``item``'s payload when it is a ``ptype``; else ``reject(kind, detail)`` and None.
+
+    ``kind`` is ``"bad_payload"`` (undecodable: the wire contract refused it) or ``"wrong_type"`` (a valid
+    payload of another type on this key): the one place a typed reader tells the two apart.
+    """
+    if item.error is not None or item.payload is None:
+        reject("bad_payload", str(item.error))
+        return None
+    if not isinstance(item.payload, ptype):
+        reject("wrong_type", f"{item.key} carried {type(item.payload).__name__}, not {ptype.__name__}")
+        return None
+    return item.payload
+
+
 class Handler(Channel[Received[Any]]):
     """A :class:`Channel`'s stand-in that hands each sample to a function on the Zenoh thread at once.
 
@@ -245,6 +260,7 @@ class Subscription:
     ) -> None:
         self.keyexpr = keyexpr
         self.channel = channel
+        self._dropped_seen = 0
         self._decode = decode
         self._keep_raw = keep_raw
         self._sub = bus.session.declare_subscriber(keyexpr, self._on_sample)
@@ -263,6 +279,12 @@ class Subscription:
         else:
             item.raw = raw
         self.channel.put(item)
+
+    def newly_dropped(self) -> int:
+        """Samples the channel dropped (it was full) since the last call: for a ``dropped`` counter."""
+        total = self.channel.dropped
+        new, self._dropped_seen = total - self._dropped_seen, total
+        return new
 
     def get(self, timeout: float | None = None) -> Received[Any] | None:
         """The next sample, or ``None`` on timeout."""

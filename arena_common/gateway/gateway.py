@@ -60,7 +60,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from arena_common.bus.session import Bus, Handler, Lane, Received, Subscription
+from arena_common.bus.session import Bus, Handler, Lane, Received, Subscription, typed
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.gateway.commands import CommandExecutor
@@ -645,12 +645,8 @@ class Gateway:
         if self._stop.is_set():
             return
         self.stats.count("in")
-        if item.error is not None or item.payload is None:
-            self.stats.reject("vision: undecodable")
-            return
-        pose = item.payload
-        if not isinstance(pose, wire.Pose):
-            self.stats.reject("vision: not a Pose")
+        pose = typed(item, wire.Pose, self._vision_reject)
+        if pose is None:
             return
         reason = self.vision.offer(pose)
         if reason is None:
@@ -658,19 +654,22 @@ class Gateway:
         else:
             self.stats.reject(f"vision: {reason}")
 
+    def _vision_reject(self, kind: str, detail: str) -> None:
+        self.stats.reject("vision: undecodable" if kind == "bad_payload" else "vision: not a Pose")
+
+    def _estop_reject(self, kind: str, detail: str) -> None:
+        self.stats.reject("estop: undecodable" if kind == "bad_payload" else "estop: not an Estop")
+
     def _estop_loop(self, sub: Subscription) -> None:
         while not self._stop.is_set():
             item = sub.get(0.2)
             if item is None:
                 continue
-            if item.error is not None or item.payload is None:
-                self.stats.reject("estop: undecodable")
-                continue
-            if not isinstance(item.payload, wire.Estop):
-                self.stats.reject("estop: not an Estop")
+            e = typed(item, wire.Estop, self._estop_reject)
+            if e is None:
                 continue
             try:
-                self.estop(item.payload)
+                self.estop(e)
             except Exception as exc:  # the next estop must still work
                 self._failed("estop", exc)
 

@@ -40,7 +40,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from arena_common.bus.session import Subscription
+from arena_common.bus.session import Subscription, typed
 from arena_common.core import wire
 from arena_common.core.config import ArenaSpec
 from arena_common.gateway.events import EventSink
@@ -446,6 +446,12 @@ class SetpointForwarder:
             s.yr if s.yr is not None else 0.0,
         )  # fmt: skip
 
+    def _reject_sample(self, kind: str, detail: str) -> None:
+        if kind == "bad_payload":
+            self.refuse(f"undecodable: {detail}")
+        else:
+            self.refuse(f"not a Setpoint: {detail}")
+
     def run(
         self, sub: Subscription, stop: threading.Event, on_error: Callable[[str, BaseException], None]
     ) -> None:
@@ -459,13 +465,9 @@ class SetpointForwarder:
                 item = sub.get(max(0.001, min(wait, 0.05)))
                 if item is None:
                     continue
-                if item.error is not None or item.payload is None:
-                    self.refuse(f"undecodable: {item.error}")
-                    continue
-                if not isinstance(item.payload, wire.Setpoint):
-                    self.refuse(f"not a Setpoint but a {type(item.payload).__name__}")
-                    continue
-                self.offer(item.payload)
+                sp = typed(item, wire.Setpoint, self._reject_sample)
+                if sp is not None:
+                    self.offer(sp)
             except Exception as exc:  # one bad sample (or send) must never end the stream for good
                 on_error("setpoint", exc)
                 stop.wait(0.01)

@@ -26,9 +26,10 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any
 
 from arena_common.bus.hosts import host_bus_options, host_name
-from arena_common.bus.session import Bus, BusOptions, Lane, open_bus
+from arena_common.bus.session import Bus, BusOptions, Lane, Received, Subscription, open_bus
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.runtime.clock import ClockSync
@@ -135,6 +136,18 @@ class Service:
     def stopped(self) -> bool:
         """True once a stop was asked for."""
         return self.stop.is_set()
+
+    def read(self, sub: Subscription, timeout: float, count: str = "in") -> Received[Any] | None:
+        """The next sample of ``sub`` (None after ``timeout``), counted under ``count``; what its channel
+        dropped meanwhile is counted as ``dropped``.  Check its type with
+        :func:`~arena_common.bus.session.typed`."""
+        item = sub.get(timeout)
+        dropped = sub.newly_dropped()
+        if dropped:
+            self.stats.count("dropped", dropped)
+        if item is not None:
+            self.stats.count(count)
+        return item
 
     def reject(self, reason: str, detail: str = "", interval: float = 5.0) -> None:
         """Count a rejected input and log it, once per reason per ``interval`` seconds."""
