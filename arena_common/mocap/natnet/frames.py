@@ -293,11 +293,7 @@ def decode_frame(payload: bytes | bytearray | memoryview, version: Version, *, f
         off = 8
 
         section = "marker sets"
-        stop = end
-        if sizes:
-            stop = _section_end(data, off, end)
-            off += 4
-        _check_count(n_sets, 5, off, stop, "marker set")
+        off, stop = _open_section(data, off, end, sizes, n_sets, 5, "marker set")
         if sizes and not full:
             off = stop
         else:
@@ -320,13 +316,7 @@ def decode_frame(payload: bytes | bytearray | memoryview, version: Version, *, f
                 off = _close_section(off, stop)
 
         section = "unlabeled markers"
-        (n_unlabeled,) = _I32.unpack_from(data, off)
-        off += 4
-        stop = end
-        if sizes:
-            stop = _section_end(data, off, end)
-            off += 4
-        _check_count(n_unlabeled, 12, off, stop, "unlabeled marker")
+        n_unlabeled, off, stop = _count_section(data, off, end, sizes, 12, "unlabeled marker")
         if full:
             unlabeled = tuple(_VEC3.iter_unpack(data[off : off + 12 * n_unlabeled]))
         off = _close_section(off + 12 * n_unlabeled, stop) if sizes else off + 12 * n_unlabeled
@@ -361,13 +351,7 @@ def decode_frame(payload: bytes | bytearray | memoryview, version: Version, *, f
 
         if lay.skeletons:
             section = "skeletons"
-            (n_skeletons,) = _I32.unpack_from(data, off)
-            off += 4
-            stop = end
-            if sizes:
-                stop = _section_end(data, off, end)
-                off += 4
-            _check_count(n_skeletons, 8, off, stop, "skeleton")
+            n_skeletons, off, stop = _count_section(data, off, end, sizes, 8, "skeleton")
             if sizes and not full:
                 off = stop
             else:
@@ -388,11 +372,7 @@ def decode_frame(payload: bytes | bytearray | memoryview, version: Version, *, f
 
         if lay.assets:
             section = "assets"
-            (n_assets,) = _I32.unpack_from(data, off)
-            off += 4
-            stop = _section_end(data, off, end)
-            off += 4
-            _check_count(n_assets, 12, off, stop, "asset")
+            n_assets, off, stop = _count_section(data, off, end, True, 12, "asset")
             if not full:
                 off = stop
             else:
@@ -416,27 +396,15 @@ def decode_frame(payload: bytes | bytearray | memoryview, version: Version, *, f
 
         if lay.labeled:
             section = "labeled markers"
-            (n_labeled,) = _I32.unpack_from(data, off)
-            off += 4
-            stop = end
-            if sizes:
-                stop = _section_end(data, off, end)
-                off += 4
             size = lay.lm.size
-            _check_count(n_labeled, size, off, stop, "labeled marker")
+            n_labeled, off, stop = _count_section(data, off, end, sizes, size, "labeled marker")
             if full:
                 labeled = _read_labeled(data, off, n_labeled, lay)
             off = _close_section(off + size * n_labeled, stop) if sizes else off + size * n_labeled
 
         if lay.force_plates:
             section = "force plates"
-            (n_plates,) = _I32.unpack_from(data, off)
-            off += 4
-            stop = end
-            if sizes:
-                stop = _section_end(data, off, end)
-                off += 4
-            _check_count(n_plates, 8, off, stop, "force plate")
+            n_plates, off, stop = _count_section(data, off, end, sizes, 8, "force plate")
             if n_plates:
                 force_plates, off = _read_analog(data, off, stop, n_plates, full, "force plate")
             if sizes:
@@ -444,13 +412,7 @@ def decode_frame(payload: bytes | bytearray | memoryview, version: Version, *, f
 
         if lay.devices:
             section = "devices"
-            (n_devices,) = _I32.unpack_from(data, off)
-            off += 4
-            stop = end
-            if sizes:
-                stop = _section_end(data, off, end)
-                off += 4
-            _check_count(n_devices, 8, off, stop, "device")
+            n_devices, off, stop = _count_section(data, off, end, sizes, 8, "device")
             if n_devices:
                 devices, off = _read_analog(data, off, stop, n_devices, full, "device")
             if sizes:
@@ -519,6 +481,28 @@ def decode_frame(payload: bytes | bytearray | memoryview, version: Version, *, f
         force_plates,
         devices,
     )
+
+
+def _count_section(
+    data: bytes, off: int, end: int, sizes: bool, least: int, what: str
+) -> tuple[int, int, int]:
+    """Open a section that starts with its item count: ``(count, where its items start, where it ends)``."""
+    (count,) = _I32.unpack_from(data, off)
+    off, stop = _open_section(data, off + 4, end, sizes, count, least, what)
+    return count, off, stop
+
+
+def _open_section(
+    data: bytes, off: int, end: int, sizes: bool, count: int, least: int, what: str
+) -> tuple[int, int]:
+    """Past a section's byte count (4.1: ``sizes``), check that ``count`` items of at least ``least``
+    bytes fit before its end: ``(where its items start, where it ends)``."""
+    stop = end
+    if sizes:
+        stop = _section_end(data, off, end)
+        off += 4
+    _check_count(count, least, off, stop, what)
+    return off, stop
 
 
 def _section_end(data: bytes, off: int, end: int) -> int:
