@@ -17,6 +17,7 @@ from typing import Any
 from arena_common.core import keys, wire
 from arena_common.mavlink import fastframe, px4
 from arena_common.mocap import natnet
+from tools.vectors import vectors
 
 __all__ = ["per_call_us", "run_micro", "wire_examples"]
 
@@ -34,109 +35,15 @@ def per_call_us(fn: Callable[[], Any], iterations: int, repeats: int = 3) -> flo
 
 
 def wire_examples() -> dict[str, wire.Payload]:
-    """One realistic value of every payload type."""
-    now = time.time_ns()
-    return {
-        "MocapPose": wire.MocapPose(
-            t=now,
-            fn=123456,
-            id=1,
-            p=(1.2345, 0.9876, -0.5432),
-            q=(0.92387953, 0.0, 0.38268343, 0.0),
-            ok=True,
-            name="d1",
-            err=0.0002,
-            lat=5_380_000,
-            mts=1234.5,
-            tsrc="echo",
-            tp=now,
-        ),
-        "Pose": wire.Pose(
-            t=now,
-            p=(1.2345, -0.5432, -0.9876),
-            q=(0.92387953, 0.0, 0.0, 0.38268343),
-            ok=True,
-            fn=123456,
-            v=(0.12, -0.03, 0.01),
-            w=(0.0, 0.01, 0.2),
-            vok=True,
-            rc=0,
-            tp=now,
-        ),
-        "State": wire.State(
-            t=now,
-            sysid=1,
-            link=True,
-            armed=True,
-            mode="OFFBOARD",
-            landed="in_air",
-            p=(1.0, -0.5, -1.0),
-            v=(0.1, 0.0, 0.0),
-            q=(1.0, 0.0, 0.0, 0.0),
-            mp=(1.0, -0.5, -1.0),
-            bat=0.8,
-            volt=15.9,
-            rtt=0.002,
-            hb_age=0.3,
-            vis_rate=50.0,
-            vis_age=0.01,
-            vis_fused=True,
-            ofb=True,
-            setup_ok=True,
-            fs=(),
-            tp=now,
-        ),
-        "Telemetry": wire.Telemetry(
-            t=now,
-            msg="ATTITUDE",
-            f={
-                "time_boot_ms": 123456,
-                "roll": 0.01,
-                "pitch": -0.02,
-                "yaw": 1.57,
-                "rollspeed": 0.0,
-                "pitchspeed": 0.0,
-                "yawspeed": 0.01,
-            },
-        ),
-        "Event": wire.Event(
-            t=now, kind="mode", text="d1: POSITION → OFFBOARD", sev=6, data={"mode": "OFFBOARD"}
-        ),
-        "Command": wire.Command(
-            op="goto", args={"p": [1.0, 0.5, -1.0], "yaw": 0.0}, src="lab/user", timeout=5.0, t=now
-        ),
-        "CommandResult": wire.CommandResult(ok=True, result="ACCEPTED", reason="", value={}, t=now),
-        "Setpoint": wire.Setpoint(t=now, lease=0.5, p=(1.0, 0.5, -1.0), v=None, yaw=0.0, src="lab/user"),
-        "Estop": wire.Estop(t=now, kill=False, reason="test", src="lab/user"),
-        "Stats": wire.Stats(
-            t=now,
-            service="gateway.d1",
-            host="bench",
-            pid=1234,
-            up=12.5,
-            counts={"in": 1000, "out": 990},
-            rejected={"stale": 3},
-            rates={"in": 50.0, "out": 49.5},
-            lat={"p50": 0.0003, "p99": 0.001},
-            cpu=3.5,
-            rss=60_000_000,
-            vehicle="d1",
-        ),
-    }
+    """One realistic value of every payload type: the first golden vector of each (tools/vectors.py)."""
+    out: dict[str, wire.Payload] = {}
+    for vec in vectors():
+        out.setdefault(vec.type_name, vec.payload)
+    return out
 
 
-_KEYS = {
-    "MocapPose": "arena/d1/mocap",
-    "Pose": "arena/d1/pose",
-    "State": "arena/d1/state",
-    "Telemetry": "arena/d1/telemetry/ATTITUDE",
-    "Event": "arena/d1/events",
-    "Command": "arena/d1/cmd",
-    "CommandResult": "arena/d1/cmd",
-    "Setpoint": "arena/d1/setpoint",
-    "Estop": "arena/estop",
-    "Stats": "arena/sys/stats/bench/gateway.d1",
-}
+#: The key each example travels on.
+_KEYS = {vec.type_name: vec.key for vec in reversed(vectors())}
 
 
 def natnet_bench_frame(n_bodies: int) -> natnet.Frame:
