@@ -14,23 +14,18 @@ test creates (10.213.7.0/24); they are deleted, and every process killed, at the
 from __future__ import annotations
 
 import json
-import os
 import queue
-import shutil
-import signal
-import subprocess
 import sys
 import textwrap
-import threading
 import time
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from tests.conftest import REPO, wait_for
+from tests.conftest import wait_for
+from tests.netnslib import Lab, drain, namespaces_usable
 
 pytestmark = [pytest.mark.netns, pytest.mark.system]
 
@@ -124,104 +119,12 @@ USER_PROGRAM = textwrap.dedent(
 )
 
 
-def _run(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(list(args), capture_output=True, text=True, timeout=30, check=check)
-
-
-def _namespaces_usable() -> str:
-    """Empty when this machine can build namespaces, else the reason it cannot."""
-    if not sys.platform.startswith("linux"):
-        return "network namespaces are Linux only"
-    if shutil.which("ip") is None:
-        return "iproute2 ('ip') is not installed"
-    if os.geteuid() != 0:
-        return "creating network namespaces needs root"
-    probe = f"arena-probe-{uuid.uuid4().hex[:6]}"
-    res = _run("ip", "netns", "add", probe, check=False)
-    if res.returncode != 0:
-        return f"'ip netns add' fails here: {res.stderr.strip()}"
-    _run("ip", "netns", "del", probe, check=False)
-    return ""
-
-
-SKIP_REASON = _namespaces_usable()
-
-
-class Lab:
-    """The namespaces, their links and the processes run in them."""
-
-    def __init__(self) -> None:
-        tag = uuid.uuid4().hex[:5]
-        self.ns = {h: f"arena-{tag}-{h}" for h in ADDRESS}
-        self.veth = {h: f"ar{tag}{h[:3]}" for h in ADDRESS if h != "ground"}
-        self.procs: list[subprocess.Popen[str]] = []
-
-    def build(self) -> None:
-        g = self.ns["ground"]
-        for ns in self.ns.values():
-            _run("ip", "netns", "add", ns)
-            _run("ip", "-n", ns, "link", "set", "lo", "up")
-        _run("ip", "-n", g, "link", "add", "br0", "type", "bridge")
-        _run("ip", "-n", g, "addr", "add", f"{ADDRESS['ground']}/24", "dev", "br0")
-        _run("ip", "-n", g, "link", "set", "br0", "up")
-        for host, veth in self.veth.items():
-            ns = self.ns[host]
-            _run("ip", "link", "add", veth, "netns", g, "type", "veth", "peer", "name", "eth0", "netns", ns)
-            _run("ip", "-n", g, "link", "set", veth, "master", "br0", "up")
-            _run("ip", "-n", ns, "addr", "add", f"{ADDRESS[host]}/24", "dev", "eth0")
-            _run("ip", "-n", ns, "link", "set", "eth0", "up")
-
-    def link(self, host: str, up: bool) -> None:
-        _run("ip", "-n", self.ns[host], "link", "set", "eth0", "up" if up else "down")
-
-    def spawn(
-        self, host: str, *argv: str, stdin: bool = False
-    ) -> tuple[subprocess.Popen[str], queue.Queue[str]]:
-        proc = subprocess.Popen(
-            ["ip", "netns", "exec", self.ns[host], *argv],
-            cwd=REPO,
-            stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )
-        self.procs.append(proc)
-        lines: queue.Queue[str] = queue.Queue()
-
-        def pump() -> None:
-            for line in proc.stdout or ():
-                lines.put(line)
-
-        threading.Thread(target=pump, daemon=True).start()
-        return proc, lines
-
-    def teardown(self) -> None:
-        for proc in reversed(self.procs):
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        for proc in reversed(self.procs):
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=10)
-        for ns in self.ns.values():
-            # Anything still inside (it should not be) goes with its namespace.
-            pids = _run("ip", "netns", "pids", ns, check=False).stdout.split()
-            for pid in pids:
-                try:
-                    os.kill(int(pid), signal.SIGKILL)
-                except (ProcessLookupError, ValueError):
-                    pass
-            _run("ip", "netns", "del", ns, check=False)
-
-
 @pytest.fixture
 def lab() -> Iterator[Lab]:
-    if SKIP_REASON:
-        pytest.skip(SKIP_REASON)
-    the_lab = Lab()
+    reason = namespaces_usable()
+    if reason:
+        pytest.skip(reason)
+    the_lab = Lab(ADDRESS)
     try:
         the_lab.build()
         yield the_lab
@@ -271,12 +174,6 @@ def services(alive: list[str]) -> set[str]:
     return {k.rsplit("/", 1)[1] for k in alive}
 
 
-def _drain(lines: queue.Queue[str], into: list[str]) -> list[str]:
-    while not lines.empty():
-        into.append(lines.get())
-    return into
-
-
 @pytest.mark.timeout(420)
 def test_several_computers_link_loss_and_recovery(lab: Lab, tmp_path: Path) -> None:
     cfg = tmp_path / "netns.toml"
@@ -291,7 +188,7 @@ def test_several_computers_link_loss_and_recovery(lab: Lab, tmp_path: Path) -> N
 
     def pump_logs() -> None:
         for host, q in outs.items():
-            _drain(q, logs[host])
+            drain(q, logs[host])
 
     # The user's program is a client: it needs the router up when it starts.
     def router_up() -> bool:
