@@ -110,6 +110,9 @@ class PointResult:
     # the least, the median and the most over the vehicles.
     vision_rate: dict[str, float] = field(default_factory=dict)
     hogs: int = 0  # CPU hogs run beside the chain during the window (the overload point)
+    # s from the first process started to every service alive ("services"), and from the emulator's start
+    # to ODOMETRY from every gateway ("vision"); the first point of a process set only
+    startup: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -373,6 +376,7 @@ def run_arena(
         if hop_watcher is not None:
             hop_watcher.clear()
         # The emulator first, then the ingest (its handshake then succeeds at once): both per rate.
+        t_emulator = time.monotonic()
         emulator = procs.spawn(
             f"emulator.{int(rate)}",
             "emulator",
@@ -385,6 +389,8 @@ def run_arena(
         )
         what = f"ODOMETRY from all {n} gateways at {rate:g} Hz"
         _wait_outputs(collector, n, settings.start_timeout, what, procs, lambda d: odometry_of(d) is not None)
+        if "services" in startup and "vision" not in startup:
+            startup["vision"] = time.monotonic() - t_emulator
         loads = [
             procs.spawn(f"hog.{k}", "load", [sys.executable, "-c", "while True: pass"]) for k in range(hogs)
         ]
@@ -424,6 +430,7 @@ def run_arena(
             hops=hop_breakdown(found["first_vehicle"], hop_watcher.stamps) if hop_watcher else {},
             window_s=(t1 - t0) / 1e9,
             hogs=hogs,
+            startup=dict(startup) if not results else {},
         )
         keys_ = ("frames", "frame_gaps", "substituted", "unmatched_time", "clock_residual_us_p99")
         point.notes.append(
@@ -437,8 +444,10 @@ def run_arena(
             on_point(point)
         return point
 
+    startup: dict[str, float] = {}
     try:
         collector.start()
+        t_start = time.monotonic()
         procs.spawn(
             "router",
             "router",
@@ -464,6 +473,7 @@ def run_arena(
                 settings.repo,
             )
         all_up()
+        startup["services"] = time.monotonic() - t_start
         idle: dict[str, dict[str, Any]] = {}
         if settings.idle > 0:
             time.sleep(0.5)

@@ -37,6 +37,10 @@ PIPELINE_FLOOR_RATIO = 1.5  # the pipeline's CPU per vehicle, of its Zenoh floor
 LATENCY_FLOOR_RATIO = 1.2  # 1 vehicle × 180 Hz, p50 end to end, of the Zenoh floor's
 MIN_VISION_RATE = 45.0  # poses/s every vehicle must get, deployed (vision 50 Hz)
 DEPLOYED_P99_MS = 20.0
+FLEET = 50  # vehicles of the fleet point (issue #27: fifty vehicles on one ground computer)
+FLEET_IDLE_RSS_MB = 40.0  # per per-vehicle process, idle
+FLEET_IDLE_CPU = 0.2  # % of one core per per-vehicle process, idle (no mocap flowing)
+FLEET_STARTUP_S = 30.0  # from the first process started to vision from every vehicle
 _DEPLOYED = re.compile(r"^arena(-td)?-v[0-9.]+$")
 _LOADED = re.compile(r"^arena(-td)?-v[0-9.]+-loaded$")
 
@@ -317,6 +321,68 @@ def _rss_target(pts: Sequence[PointResult]) -> Target:
     return Target("idle per-vehicle process RSS", "≤ 60 MB", f"largest: {text}", worst <= 60.0)
 
 
+def _idle_vehicle(p: PointResult) -> tuple[dict[str, float], dict[str, float]]:
+    """The idle RSS (MB) and CPU (% of one core) of each per-vehicle process of ``p``."""
+    idle = {k: v for k, v in p.idle.items() if v["role"] in VEHICLE_ROLES}
+    cpu = {k: v["cpu"] for k, v in idle.items() if not math.isnan(v["cpu"])}
+    return {k: v["rss"] / MB for k, v in idle.items()}, cpu
+
+
+def fleet_targets(pts: Sequence[PointResult], n: int = FLEET) -> list[Target]:
+    """The fleet point's targets (``n`` vehicles × 180 Hz, issue #27): vision as deployed, idle RSS and CPU
+    per per-vehicle process (with the totals), and the start-up time to vision from every vehicle."""
+    at = [p for p in pts if p.vehicles == n and p.rate == 180.0]
+    name = f"{_vehicles(n)} × 180 Hz as deployed (vision 50 Hz)"
+    goal = f"every vehicle ≥ {MIN_VISION_RATE:g} vision poses/s, p99 ≤ {DEPLOYED_P99_MS:g} ms, no undesigned loss"
+    deployed = [p for p in at if _DEPLOYED.match(p.chain)]
+    out: list[Target] = []
+    if deployed:
+        p = min(deployed, key=lambda p: (p.lost, p.latency["p99"]))
+        text, ok = _vision_text(p)
+        lat = f"p50 {p.latency['p50']:.1f} ms, "
+        out.append(
+            Target(name, goal, f"{lat}{text} ({_config(p)})", ok and p.latency["p99"] <= DEPLOYED_P99_MS)
+        )
+    else:
+        out.append(Target(name, goal, "not run", None))
+    first = next((p for p in at if p.chain in CHAINS.values() and p.idle), None)
+    rss_goal, cpu_goal = f"≤ {FLEET_IDLE_RSS_MB:g} MB each", f"≤ {FLEET_IDLE_CPU:g} % of one core each"
+    rss_name = f"idle per-vehicle process RSS at {_vehicles(n)}"
+    cpu_name = f"idle per-vehicle process CPU at {_vehicles(n)} (no mocap)"
+    if first is None:
+        out += [Target(rss_name, rss_goal, "not run", None), Target(cpu_name, cpu_goal, "not run", None)]
+    else:
+        rss, cpu = _idle_vehicle(first)
+        worst_rss = max(rss.values(), default=math.nan)
+        out.append(
+            Target(
+                rss_name,
+                rss_goal,
+                f"largest {worst_rss:.1f} MB, total {sum(rss.values()):.0f} MB over {len(rss)} processes",
+                worst_rss <= FLEET_IDLE_RSS_MB,
+            )
+        )
+        mean = sum(cpu.values()) / len(cpu) if cpu else math.nan
+        out.append(
+            Target(
+                cpu_name,
+                cpu_goal,
+                f"mean {mean:.2f} %, largest {max(cpu.values(), default=math.nan):.2f} %, "
+                f"total {sum(cpu.values()):.1f} % of one core",
+                max(cpu.values(), default=math.inf) <= FLEET_IDLE_CPU,
+            )
+        )
+    up = next((p.startup for p in at if p.startup.get("vision") is not None), None)
+    up_name, up_goal = f"start-up of {_vehicles(n)} to vision from every vehicle", f"≤ {FLEET_STARTUP_S:g} s"
+    if up is None:
+        out.append(Target(up_name, up_goal, "not run", None))
+    else:
+        total = up["services"] + up["vision"]
+        text = f"{total:.1f} s: services alive {up['services']:.1f} s, then ODOMETRY from all {up['vision']:.1f} s"
+        out.append(Target(up_name, up_goal, text, total <= FLEET_STARTUP_S))
+    return out
+
+
 def evaluate_targets(result: dict[str, Any]) -> list[Target]:
     """The arena's performance targets against a result of :func:`bench.run.run`."""
     pts = [PointResult(**p) for p in result.get("points", [])]
@@ -329,4 +395,5 @@ def evaluate_targets(result: dict[str, Any]) -> list[Target]:
         _duration_target(result),
         *_micro_targets(result.get("micro") or {}),
         _rss_target(pts),
+        *(fleet_targets(pts) if any(p.vehicles == FLEET for p in pts) else []),
     ]

@@ -420,3 +420,31 @@ def test_the_rate_sweep_compares_each_forwarder_with_mavproxy_at_the_same_rate()
     assert rows["mavproxy"] == ["300 µs", "250 µs, 990/1000 forwarded", "200 µs"]
     assert "floor-udp" not in rows
     assert report.sweep_rows({"rate": 200.0}) == []
+
+
+def test_the_fleet_point_is_judged_against_issue_27s_targets() -> None:
+    """50 vehicles: vision as deployed, idle RSS and CPU per per-vehicle process, start-up to vision."""
+    arena = {"router": 1.0, "ingest": 9.0, "transform": 30.0, "gateway": 150.0}
+    idle = {
+        f"gateway.d{k}": {"role": "gateway", "pid": 1, "cpu": 0.15 if k else 0.3, "rss": 45 << 20}
+        for k in range(50)
+    }
+    idle["transform"] = {"role": "transform", "pid": 1, "cpu": 2.0, "rss": 90 << 20}
+    deployed = {"min": 48.0, "median": 50.0, "max": 50.2}
+    points = [
+        _point("arena-td", 50, arena, p50=6.0, idle=idle, startup={"services": 21.0, "vision": 4.5}),
+        _point("arena-td-v50", 50, arena, p50=5.0, vision_rate=deployed),
+    ]
+    t = _targets(_result(250.0, points))
+    vision = t["50 vehicles × 180 Hz as deployed"]
+    assert vision.met is True and vision.measured.startswith("p50 5.0 ms, least 48.0 poses/s")
+    rss = t["idle per-vehicle process RSS at 50 vehicles"]
+    assert rss.met is False and rss.measured == "largest 45.0 MB, total 2250 MB over 50 processes"
+    cpu = t["idle per-vehicle process CPU at 50 vehicles"]
+    assert cpu.met is False and cpu.measured.startswith("mean 0.15 %, largest 0.30 %, total 7.7 %")
+    up = t["start-up of 50 vehicles to vision from every vehicle"]
+    assert up.met is True and up.measured.startswith("25.5 s: services alive 21.0 s")
+    assert t["idle per-vehicle process CPU at 50 vehicles"].met is False
+    assert _targets(_result(250.0, points[1:]))["idle per-vehicle process RSS at 50 vehicles"].met is None
+    no_fleet = _targets(_result(250.0, [_point("arena-td", 20, arena)]))
+    assert not [name for name in no_fleet if "50 vehicles" in name]  # judged only when a fleet point ran

@@ -15,16 +15,19 @@ process alive once it is done: each vehicle's action runs in a daemon thread, le
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+import tomllib
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console, Group
@@ -48,6 +51,9 @@ WATCH_3D = (
 LAND_TIMEOUT = 10.0  # s to wait for the vehicles to land once the demo is asked to stop
 STOP_TIMEOUT = 20.0  # s for the supervisor to stop its services before it is killed
 RESEND_LAND = 2.0  # s between land orders to a vehicle still flying (not landing) while stopping
+FLEET_RADIUS = 0.3  # m: the circle a fleet's grid flies around its spots
+FLEET_SPACING = 0.35  # m: the least distance between two vehicles of a fleet's grid
+MAX_FLEET = 250  # MAVLink system ids 1..250
 
 
 class Stopped(ArenaError):
@@ -113,25 +119,34 @@ def formation_flight(
     height: float = 1.0,
     radius: float = 1.0,
     steps: int = 6,
+    spots: Mapping[str, tuple[float, float]] | None = None,
 ) -> None:
     """Arm, take off, fly a rotating triangle (or circle) formation around the arena centre, land.
 
+    With ``spots`` (each vehicle's place on a grid, north and east, m: a fleet), the grid keeps its shape
+    and its whole circles ``radius`` around the spots instead (no two vehicles' paths cross).
     :class:`Stopped` as soon as ``stop`` is set (no further command is sent then).
     """
     names = [v.name for v in vehicles]
-    say("arming " + ", ".join(names))
+    say("arming " + (", ".join(names) if len(names) <= 6 else f"{len(names)} vehicles"))
     together(vehicles, lambda v: v.arm(), stop)
     say(f"taking off to {height} m")
     together(vehicles, lambda v: v.takeoff(height), stop)
     for step in range(steps + 1):
         angle = step * 2 * math.pi / steps
-        targets = {
-            n: (
-                radius * math.cos(angle + 2 * math.pi * i / len(names)),
-                radius * math.sin(angle + 2 * math.pi * i / len(names)),
-            )
-            for i, n in enumerate(names)
-        }
+        if spots is not None:
+            targets = {
+                n: (spots[n][0] + radius * math.cos(angle), spots[n][1] + radius * math.sin(angle))
+                for n in names
+            }
+        else:
+            targets = {
+                n: (
+                    radius * math.cos(angle + 2 * math.pi * i / len(names)),
+                    radius * math.sin(angle + 2 * math.pi * i / len(names)),
+                )
+                for i, n in enumerate(names)
+            }
         say(f"formation step {step}/{steps}")
 
         def fly(v: Vehicle, t: dict[str, tuple[float, float]] = targets) -> None:
@@ -143,10 +158,138 @@ def formation_flight(
     say("landed: demo complete")
 
 
+# -- a fleet: N simulated vehicles on a grid (--vehicles) ------------------------------------------------------
+
+
+def grid(n: int, size: tuple[float, float], keep_off: float) -> list[tuple[float, float]]:
+    """``n`` places (north, east, m, about the room's centre) on the widest-spaced grid that fits a
+    floor of ``size`` (north, east) at ``keep_off`` from its walls, row by row.
+
+    :class:`ArenaError` when they would stand closer than :data:`FLEET_SPACING`.
+    """
+    length, width = size[0] - 2 * keep_off, size[1] - 2 * keep_off
+    best: tuple[float, int, int] | None = None
+    for rows in range(1, n + 1):
+        cols = math.ceil(n / rows)
+        spacing = min(
+            length / (cols - 1) if cols > 1 else math.inf, width / (rows - 1) if rows > 1 else math.inf
+        )
+        if best is None or spacing > best[0]:
+            best = (spacing, rows, cols)
+    assert best is not None
+    spacing, rows, cols = best
+    if spacing < FLEET_SPACING:
+        raise ArenaError(
+            f"{n} vehicles do not fit the {size[0]:g} × {size[1]:g} m floor at least {FLEET_SPACING} m apart"
+        )
+    spacing = min(spacing, 1.0)  # no further apart than a metre: a compact formation
+    return [
+        (round((i % cols - (cols - 1) / 2) * spacing, 3), round((i // cols - (rows - 1) / 2) * spacing, 3))
+        for i in range(n)
+    ]
+
+
+def _free_udp_ports(n: int) -> list[int]:
+    """``n`` distinct UDP ports free on loopback now (each bound at once, so none repeats)."""
+    socks = []
+    try:
+        for _ in range(n):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", 0))
+            socks.append(s)
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
+def _key(name: str) -> str:
+    return name if name and all(c.isalnum() or c in "_-" for c in name) else json.dumps(name)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)  # a TOML basic string
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{_key(k)} = {_toml_value(v)}" for k, v in value.items()) + " }"
+    raise TypeError(f"cannot write {type(value).__name__} as TOML")
+
+
+def to_toml(doc: Mapping[str, Any]) -> str:
+    """``doc`` (tables of tables of values, as :mod:`tomllib` reads a config) as TOML text."""
+    lines: list[str] = []
+
+    def table(name: str, body: Mapping[str, Any]) -> None:
+        values = {k: v for k, v in body.items() if not isinstance(v, dict) or name.startswith("vehicles.")}
+        if name.startswith("vehicles.") or values or not body:
+            lines.append(f"[{name}]")
+            lines.extend(f"{_key(k)} = {_toml_value(v)}" for k, v in values.items())
+            lines.append("")
+        for k, v in body.items():
+            if isinstance(v, dict) and k not in values:
+                table(f"{name}.{_key(k)}", v)
+
+    for key, value in doc.items():
+        if not isinstance(value, dict):
+            lines.insert(0, f"{_key(key)} = {_toml_value(value)}")
+    for key, value in doc.items():
+        if isinstance(value, dict):
+            table(key, value)
+    return "\n".join(lines)
+
+
+def fleet_config(base: Path, n: int, out: Path) -> tuple[Path, dict[str, tuple[float, float]]]:
+    """Write to ``out`` the config of ``base`` with ``n`` simulated vehicles ``d1``…``dN`` instead of its own,
+    placed on a grid inside its room; their places by name.
+
+    Every vehicle gets a free loopback UDP port for its MAVLink link and the system id of its number; the
+    base's first host runs them all, and the transform decimates (``[pipeline] decimate = "transform"``:
+    no downsampler process per vehicle).  Everything else (mocap, Zenoh, the room) is the base's.
+    """
+    if not 1 <= n <= MAX_FLEET:
+        raise ArenaError(f"--vehicles: 1..{MAX_FLEET} (MAVLink system ids), got {n}")
+    with open(base, "rb") as f:
+        doc = tomllib.load(f)
+    cfg = load_config(base)
+    host = next(iter(cfg.hosts), None)
+    if host is None:
+        raise ArenaError(f"{base} names no host to run")
+    size = cfg.arena.size
+    spots = grid(n, (size[0], size[1]), cfg.arena.margin + FLEET_RADIUS + 0.1)
+    names = [f"d{i + 1}" for i in range(n)]
+    doc.setdefault("pipeline", {})["decimate"] = "transform"
+    hosts = doc.setdefault("hosts", {})
+    for h in hosts.values():
+        h["vehicles"] = []
+        if "vehicle_services" in h:
+            h["vehicle_services"] = [s for s in h["vehicle_services"] if s != "downsampler"] or ["gateway"]
+    hosts[host]["vehicles"] = names
+    doc["vehicles"] = {
+        name: {
+            "rigid_body": name,
+            "mavlink": f"udpin:127.0.0.1:{port}",
+            "system_id": i + 1,
+            "sim": {"start": list(spot)},
+        }
+        for i, (name, port, spot) in enumerate(zip(names, _free_udp_ports(n), spots, strict=True))
+    }
+    header = f"# {n} simulated vehicles on a grid, from {base} (written by `arena demo --vehicles {n}`)\n\n"
+    out.write_text(header + to_toml(doc) + "\n")
+    load_config(out)  # what we wrote is a valid config
+    return out, dict(zip(names, spots, strict=True))
+
+
 def _wait_ready(arena: Arena, cfg: ArenaConfig, stop: threading.Event, say: Say, timeout: float) -> bool:
     names = list(cfg.vehicles)
     deadline = time.monotonic() + timeout
-    say(f"waiting for {', '.join(names)}: gateways alive and vision fused")
+    listed = ", ".join(names) if len(names) <= 6 else f"{len(names)} vehicles"
+    say(f"waiting for {listed}: gateways alive and vision fused")
     while not stop.is_set() and time.monotonic() < deadline:
         vs = [arena.vehicle(n) for n in names]
         if all(v.state is not None and v.link and v.state.vis_fused and v.state.setup_ok for v in vs):
@@ -244,18 +387,45 @@ def demo(
         bool, typer.Option("--once", help="Exit after the demo flight instead of watching.")
     ] = False,
     log: Annotated[Path, typer.Option(help="Where the arena's own logs go.")] = Path("arena-demo.log"),
-    ready_timeout: Annotated[float, typer.Option(help="Seconds to wait for the arena to come up.")] = 90.0,
+    ready_timeout: Annotated[
+        float | None,
+        typer.Option(help="Seconds to wait for the arena to come up (default 90, and 2 s more per vehicle)."),
+    ] = None,
     land_timeout: Annotated[
         float, typer.Option(help="When stopped (Ctrl-C): seconds to wait for the vehicles to land.")
     ] = LAND_TIMEOUT,
+    vehicles: Annotated[
+        int | None,
+        typer.Option(
+            "--vehicles",
+            "-n",
+            help="Fly N simulated vehicles on a grid instead of CONFIG's own (their config is written "
+            "next to --log, as arena-demo-N.toml: CONFIG's room, mocap and Zenoh, free ports).",
+        ),
+    ] = None,
 ) -> None:
     """Run the simulated arena from CONFIG and fly a formation demo with every vehicle, live status shown.
 
+    With --vehicles N, N simulated vehicles d1…dN on a grid inside CONFIG's room fly it instead.
     Ctrl-C (or a closed terminal, or SIGTERM) lands the vehicles, waits for them to be on the ground
     (at most --land-timeout s) and stops the arena; a second Ctrl-C stops everything at once.
     """
     path = global_config_file(config_file)
+    spots: dict[str, tuple[float, float]] | None = None
+    if vehicles is not None:
+        try:
+            path, spots = fleet_config(path, vehicles, log.with_name(f"arena-demo-{vehicles}.toml"))
+        except (ArenaError, OSError) as exc:
+            console.print(f"[red]error:[/] {exc}")
+            raise typer.Exit(2) from None
+        console.print(
+            f"{vehicles} vehicles on a grid: config {path} (watch them: arena view -c {path}; "
+            f"fly your own program: arena up {path})",
+            soft_wrap=True,
+        )
     cfg = load_config(path)
+    if ready_timeout is None:
+        ready_timeout = 90.0 + 2.0 * len(cfg.vehicles)
     host = next(iter(cfg.hosts), None)
     if host is None:
         console.print(f"[red]error:[/] {path} names no host to run")
@@ -263,7 +433,7 @@ def demo(
     stop = threading.Event()  # a signal: stop the flight, land, stop the arena
     hurry = threading.Event()  # a second one: at once
     with StopSignals(stop, again=lambda _signum: hurry.set()) as signals:
-        _run(cfg, path, host, log, once, ready_timeout, land_timeout, stop, hurry, signals)
+        _run(cfg, path, host, log, once, ready_timeout, land_timeout, stop, hurry, signals, spots)
 
 
 def _run(
@@ -277,6 +447,7 @@ def _run(
     stop: threading.Event,
     hurry: threading.Event,
     signals: StopSignals,
+    spots: dict[str, tuple[float, float]] | None = None,
 ) -> None:
     logf = open(log, "ab")  # noqa: SIM115 - kept open for the child's lifetime
     # The supervisor runs in its own session (the terminal's signals reach the demo alone, which stops
@@ -308,7 +479,10 @@ def _run(
                 if stop.is_set():
                     return
                 raise ArenaError(f"the arena did not come up within {ready_timeout:.0f} s (see {log})")
-            formation_flight(vehicles, say, stop)
+            if spots is None:
+                formation_flight(vehicles, say, stop)
+            else:
+                formation_flight(vehicles, say, stop, radius=FLEET_RADIUS, spots=spots)
         except Stopped:
             pass
         except BaseException as exc:

@@ -48,7 +48,7 @@ class EventSink:
     def run(self, stop: threading.Event) -> None:
         """Publish queued events until ``stop`` (then flush what is left)."""
         while not stop.is_set() or len(self._channel):
-            event = self._channel.get(0.2)
+            event = self._channel.get(0.5)  # an event wakes it at once; the timeout only sees ``stop``
             if event is not None and self._publish is not None:
                 try:
                     self._publish(event)

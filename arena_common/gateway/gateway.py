@@ -611,7 +611,7 @@ class Gateway:
         link, handlers, tele, stats = self.link, self._handlers, self.telemetry, self.stats
         while not self._stop.is_set():
             try:
-                frames = link.read(0.1)
+                frames = link.read(0.5)  # a frame wakes it at once; the timeout only sees _stop
             except Exception as exc:
                 self._failed("mavlink", exc)
                 self._stop.wait(0.05)
@@ -662,7 +662,7 @@ class Gateway:
 
     def _estop_loop(self, sub: Subscription) -> None:
         while not self._stop.is_set():
-            item = sub.get(0.2)
+            item = sub.get(0.5)  # an estop wakes it at once; the timeout only sees _stop
             if item is None:
                 continue
             e = typed(item, wire.Estop, self._estop_reject)

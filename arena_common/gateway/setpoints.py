@@ -38,7 +38,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 from arena_common.bus.session import Subscription, typed
 from arena_common.core import wire
@@ -125,6 +125,12 @@ def outside(p: Vec3, box: tuple[tuple[float, float], tuple[float, float], tuple[
     return None
 
 
+#: s between the forwarder thread's looks while no stream runs (a setpoint, or :meth:`start_goto`, wakes
+#: it at once): an idle gateway's thread wakes twice a second instead of at the stream rate.
+IDLE_WAIT = 0.5
+_WAKE = object()  # put in the thread's channel by start_goto: "a stream started, tick now"
+
+
 class SetpointForwarder:
     """Checks, leases and streams offboard setpoints to one vehicle (see the module's rules)."""
 
@@ -167,6 +173,8 @@ class SetpointForwarder:
         self._t0 = time.monotonic()
         self.sent = 0
         self.refused = 0
+        self._sub: Subscription | None = None  # the thread's subscription (start_goto wakes it there)
+        self._idle = False  # the thread waits IDLE_WAIT: no stream
 
     # -- rules ---------------------------------------------------------------------------------------
     def check(self, sp: wire.Setpoint) -> str | None:
@@ -302,6 +310,9 @@ class SetpointForwarder:
             self._stream = _Stream("goto", start, None, yaw, None, mask, math.inf, goal)
             self._last_tick = now
             self._send(now)
+        sub = self._sub
+        if self._idle and sub is not None:
+            sub.channel.put(cast(Any, _WAKE))
 
     def cancel_goto(self, reason: str) -> None:
         """Stop the gateway's own stream (a user stream is left alone)."""
@@ -459,11 +470,17 @@ class SetpointForwarder:
 
         A failure of one sample (or send) goes to ``on_error("setpoint", exc)`` and the stream goes on.
         """
+        self._sub = sub
         while not stop.is_set():
             try:
                 wait = self.tick()
-                item = sub.get(max(0.001, min(wait, 0.05)))
-                if item is None:
+                self._idle = True  # before looking at the stream: start_goto then sees it and wakes us
+                if self._stream is None:  # nothing to stream: wait for a setpoint or start_goto's wake-up
+                    item = sub.get(IDLE_WAIT)
+                else:
+                    item = sub.get(max(0.001, min(wait, 0.05)))
+                self._idle = False
+                if item is None or item is _WAKE:
                     continue
                 sp = typed(item, wire.Setpoint, self._reject_sample)
                 if sp is not None:

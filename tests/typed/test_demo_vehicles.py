@@ -1,0 +1,77 @@
+"""``arena demo --vehicles N``: N simulated vehicles on a grid fly the formation, typed as a user types it.
+
+The README's line flies 20; the test types the same command with 4 (a busy 2-core machine) on a config
+of free ports (:class:`tests.typed.harness.Typed`), which ``--vehicles`` takes as its base: its room,
+mocap and Zenoh ports, its host.  The fleet's own config is written next to the log.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from arena_common.cli._demo import grid
+from arena_common.core.config import load
+from arena_common.core.errors import ArenaError
+from tests.conftest import free_port, wait_for
+from tests.typed.harness import ARENA, Command, Typed, commands, leftovers
+
+pytestmark = [
+    pytest.mark.system,
+    pytest.mark.timeout(400),
+    pytest.mark.skipif(not ARENA.exists(), reason=f"no arena console script at {ARENA}"),
+]
+
+FLOWN_S = 300.0  # the arena up, 4 vehicles ready, the whole formation flown and landed, on a busy machine
+
+
+@pytest.fixture
+def typed(tmp_path: Path) -> Iterator[Callable[..., Command]]:
+    """``arena`` command lines in ``tmp_path``, killed (with all they started) at the end."""
+    with commands(tmp_path) as start:
+        yield start
+
+
+@pytest.mark.covers("arena demo --vehicles 20")
+def test_a_fleet_on_a_grid_flies_the_formation_and_lands(
+    tmp_path: Path, typed: Callable[..., Command]
+) -> None:
+    base = Typed(tmp_path, f"tcp/127.0.0.1:{free_port()}", router=True, px4=False)
+    log = tmp_path / "demo.log"
+    cmd = typed("demo", str(base.path), "--vehicles", "4", "--once", "--log", str(log))
+    cmd.wait_line(r"waiting for d1, d2, d3, d4: gateways alive and vision fused", timeout=30)
+
+    fleet = tmp_path / "arena-demo-4.toml"  # next to the log
+    cfg = load(fleet)
+    assert list(cfg.vehicles) == ["d1", "d2", "d3", "d4"]
+    assert cfg.pipeline.decimate == "transform"
+    assert sorted(v.system_id for v in cfg.vehicles.values()) == [1, 2, 3, 4]
+    ports = {v.mavlink for v in cfg.vehicles.values()}
+    assert len(ports) == 4 and all(p.startswith("udpin:127.0.0.1:") for p in ports), ports
+    starts = [v.sim.start for v in cfg.vehicles.values()]
+    assert len(set(starts)) == 4 and all(abs(n) < 3.5 and abs(e) < 2.0 for n, e in starts), starts
+    raw = tomllib.loads(fleet.read_text())
+    assert raw["mocap"]["command_port"] == base.command_port  # the base's ports, kept
+    assert raw["zenoh"] == tomllib.loads(base.path.read_text())["zenoh"]
+
+    assert cmd.exits_within(FLOWN_S) == 0, cmd.output() + "\n" + log.read_text(errors="replace")[-3000:]
+    out = cmd.output()
+    assert f"4 vehicles on a grid: config {fleet} " in re.sub(r"\s+", " ", out), out
+    assert "formation step 6/6" in out and "landed: demo complete" in out, out
+    wait_for(lambda: not leftovers([str(tmp_path)], cmd.pid), timeout=15, interval=0.2, what="nothing left")
+
+
+def test_fifty_vehicles_fit_the_default_room_and_too_many_do_not() -> None:
+    spots = grid(50, (7.0, 4.0), 0.7)
+    assert len(set(spots)) == 50
+    assert all(abs(n) <= 2.8 and abs(e) <= 1.3 for n, e in spots)
+    closest = min(
+        ((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2) ** 0.5 for i, a in enumerate(spots) for b in spots[i + 1 :]
+    )
+    assert closest >= 0.6, closest
+    with pytest.raises(ArenaError, match="do not fit"):
+        grid(400, (7.0, 4.0), 0.7)
