@@ -63,7 +63,7 @@ bench: $(STAMP)
 	$(BIN)/python -m bench
 
 soak: $(STAMP)
-	ARENA_SOAK=full $(BIN)/python -m pytest -q tests/test_soak.py
+	ARENA_SOAK=full $(BIN)/python -m pytest -q tests/system/test_soak.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache build/docs

@@ -42,7 +42,7 @@ from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig, ArenaSpec, ZenohSpec
 from arena_common.mavlink import px4
 from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock, TruePose
-from tests.conftest import PYTHON, REPO, Proc, free_port, wait_for
+from tests.helpers import PYTHON, REPO, Proc, free_port, wait_for
 
 RESULTS_DIR = REPO / "bench-results"
 ARENA_PARAMS: dict[str, Any] = {name: value for name, (value, _) in px4.ARENA_REQUIRED_PARAMS.items()}

@@ -16,7 +16,7 @@ import threading
 import uuid
 from pathlib import Path
 
-from tests.conftest import REPO
+from tests.helpers import REPO
 
 
 def run(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:

@@ -1,4 +1,4 @@
-"""The outsider of ``tests/test_outsider.py``: run on its own computer (a namespace), it attacks every port.
+"""The outsider of ``tests/system/test_outsider.py``: run on its own computer (a namespace), it attacks every port.
 
 ``python -m tests.outsider_attack SPEC.json`` prints one JSON line per attempt and a last line
 ``{"done": true}``.  Each attempt says what it tried and what it got; the test decides what is allowed.

@@ -1,4 +1,4 @@
-"""The pilots' program of ``tests/test_outsider.py``: flies one vehicle from the commanding host and watches.
+"""The pilots' program of ``tests/system/test_outsider.py``: flies one vehicle from the commanding host and watches.
 
 ``python -m tests.outsider_ops CONFIG HOST VEHICLE`` waits for every vehicle's fused vision, takes VEHICLE
 off to 1 m, prints ``{"airborne": ...}``, then a JSON report every 0.2 s: each vehicle's state as the

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from arena_common.bus.session import Bus
 from arena_common.runtime.process import child_setup
-from tests.conftest import free_port, wait_for
+from tests.helpers import free_port, wait_for
 
 ARENA = Path(sys.executable).parent / "arena"  # the console script, as `make setup` installs it
 

@@ -22,7 +22,7 @@ from typing import Any
 
 import pytest
 
-from tests.conftest import free_port, wait_for
+from tests.helpers import free_port, wait_for
 from tests.typed.harness import ARENA, START_S, Command, Typed, bound, commands, leftovers, stops_cleanly
 
 pytestmark = pytest.mark.timeout(600)

@@ -2,7 +2,7 @@
 
 Ctrl-C, SIGTERM and a closed terminal (SIGHUP) while the vehicles fly: every vehicle lands (the demo
 waits until each is on the ground), then the arena stops and the demo exits.  A second Ctrl-C: at once.
-Each is typed as a user would (:class:`tests.test_cli_typed.Command`: the real ``arena`` script, its own
+Each is typed as a user would (:class:`tests.typed.harness.Command`: the real ``arena`` script, its own
 session), on a config of free ports; a real terminal that closes is a tmux window.
 """
 
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import free_port, wait_for
+from tests.helpers import free_port, wait_for
 from tests.typed.harness import ARENA, Command, Typed, commands, kill_leftovers, leftovers
 
 pytestmark = [

@@ -17,7 +17,7 @@ import pytest
 from arena_common.cli._demo import grid
 from arena_common.core.config import load
 from arena_common.core.errors import ArenaError
-from tests.conftest import free_port, wait_for
+from tests.helpers import free_port, wait_for
 from tests.typed.harness import ARENA, Command, Typed, commands, leftovers
 
 pytestmark = [

@@ -45,7 +45,7 @@ from arena_common.runtime.px4_sitl import (
     is_true,
     listener,
 )
-from tests.conftest import REPO, free_port, wait_for
+from tests.helpers import REPO, free_port, wait_for
 from tests.typed.harness import (
     START_S,
     Command,

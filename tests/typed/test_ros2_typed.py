@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from tests.conftest import free_port, wait_for
+from tests.helpers import free_port, wait_for
 from tests.ros2_probe import Probe
 from tests.typed.harness import Command, stops_cleanly
 

@@ -22,7 +22,7 @@ import pytest
 
 from arena_common.bus.session import Bus
 from arena_common.core.waiting import wait_until
-from tests.conftest import REPO, free_port, wait_for
+from tests.helpers import REPO, free_port, wait_for
 from tests.typed.harness import (
     ARENA,
     START_S,

@@ -6,7 +6,7 @@ declare its presence (``arena/sys/alive/<host>/<service>``) on the config's rout
 started first) and log what it serves; SIGTERM (what ``systemctl stop`` sends) must end it with status 0
 within the unit's ``TimeoutStopSec``, nothing of it left running.
 
-``systemd-analyze verify`` of the same units is tests/test_systemd.py's.
+``systemd-analyze verify`` of the same units is tests/unit/cli/test_systemd.py's.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import pytest
 from arena_common.bus.session import Bus, open_bus
 from arena_common.core.config import ZenohSpec
 from arena_common.core.waiting import wait_until
-from tests.conftest import REPO, free_port, wait_for
+from tests.helpers import REPO, free_port, wait_for
 from tests.typed.harness import START_S, Command, Program, leftovers, programs
 
 HOST = "ground"

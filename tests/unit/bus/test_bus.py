@@ -1,0 +1,143 @@
+import threading
+from collections.abc import Callable
+
+from arena_common.bus.session import Bus, Channel
+from arena_common.core import keys, wire
+from arena_common.runtime.service import running
+from tests.helpers import wait_for
+
+POSE = wire.Pose(t=1, p=(0.0, 0.0, -1.0), q=(1.0, 0.0, 0.0, 0.0), ok=True)
+
+
+def test_ring_keeps_latest_and_fifo_drops_newest() -> None:
+    ring: Channel[int] = Channel(2, ring=True)
+    fifo: Channel[int] = Channel(2, ring=False)
+    for i in range(5):
+        ring.put(i)
+        fifo.put(i)
+    assert ring.drain() == [3, 4] and ring.dropped == 3
+    assert fifo.drain() == [0, 1] and fifo.dropped == 3
+    fifo.close()
+    assert fifo.get(5.0) is None  # closed and empty: returns at once
+
+
+def test_channel_hands_every_item_to_parked_readers_and_close_wakes_them() -> None:
+    ch: Channel[int] = Channel(100_000, ring=False)
+    got: list[int] = []
+    lock = threading.Lock()
+
+    def reader() -> None:
+        while True:
+            item = ch.get(5.0)
+            if item is None:
+                return
+            with lock:
+                got.append(item)
+
+    readers = [threading.Thread(target=reader) for _ in range(3)]
+    for t in readers:
+        t.start()
+
+    # Producers race the readers parking and unparking: nothing may be lost or stranded.
+    def produce(k: int) -> None:
+        for i in range(5_000):
+            ch.put(k * 10_000 + i)
+
+    producers = [threading.Thread(target=produce, args=(k,)) for k in range(2)]
+    for t in producers:
+        t.start()
+    for t in producers:
+        t.join(5.0)
+    wait_for(lambda: len(got) == 10_000, 5.0, what="every item read")
+    ch.close()
+    for t in readers:
+        t.join(2.0)
+        assert not t.is_alive(), "close() left a reader parked"
+    assert sorted(got) == sorted(k * 10_000 + i for k in range(2) for i in range(5_000))
+    assert ch.get(0.0) is None and ch.dropped == 0
+
+
+def test_channel_get_times_out_empty() -> None:
+    ch: Channel[int] = Channel(1)
+    assert ch.get(0.05) is None
+    ch.put(1)
+    assert ch.get(0.05) == 1
+
+
+def test_typed_publish_subscribe_and_bad_payload(bus_factory: Callable[[], Bus]) -> None:
+    a, b = bus_factory(), bus_factory()
+    sub = b.subscribe("arena/*/pose", capacity=100, ring=False)
+    pub = a.stream_publisher(keys.pose("d1"), wire.Pose)
+    raw = a.stream_publisher(keys.pose("d2"), wire.Pose)
+
+    def got() -> list:
+        items.extend(sub.channel.drain())
+        return [i for i in items if i.payload is not None]
+
+    items: list = []
+
+    def sent_and_got() -> list:
+        pub.put(POSE)
+        return got()
+
+    wait_for(sent_and_got, what="first pose")
+    raw.put_raw(b"\x81\xa1t\xa3bad")
+    pub.put(POSE.replace(fn=9))
+    wait_for(lambda: any(i.payload and i.payload.fn == 9 for i in got()), what="pose after bad one")
+    errors = [i for i in items if i.error is not None]
+    assert errors and errors[0].key == "arena/d2/pose" and "field=t" in str(errors[0].error)
+
+
+def test_request_reply_and_no_server(bus_factory: Callable[[], Bus]) -> None:
+    a, b = bus_factory(), bus_factory()
+    b.serve("arena/d1/cmd", lambda key, c: wire.CommandResult(True, "ACCEPTED", reason=f"{c.op} on {key}"))
+    res = wait_for(
+        lambda: (r := a.request("arena/d1/cmd", wire.Command(op="ping"), 2.0)).ok and r, what="reply"
+    )
+    assert res.reason == "ping on arena/d1/cmd"
+    none = a.request("arena/d9/cmd", wire.Command(op="ping"), 1.0)
+    assert not none.ok and none.result == "TIMEOUT"
+
+
+def test_service_presence_and_stats(bus_factory: Callable[[], Bus]) -> None:
+    watcher = bus_factory()
+    stop = threading.Event()
+    stats_sub = watcher.subscribe("arena/sys/stats/**", capacity=10)
+    started = threading.Event()
+
+    def serve() -> None:
+        with running(
+            "demo", None, bus=bus_factory(), host="h1", vehicle="d1", stop=stop, stats_period=0.1
+        ) as svc:
+            svc.stats.count("in", 3)
+            svc.reject("bad_payload", "test")
+            started.set()
+            stop.wait(10)
+
+    t = threading.Thread(target=serve)
+    t.start()
+    try:
+        started.wait(5)
+        wait_for(lambda: watcher.alive("arena/sys/alive/**") == ["arena/sys/alive/h1/demo.d1"], what="token")
+        item = wait_for(lambda: stats_sub.get(0.5), what="stats")
+        assert item.key == "arena/sys/stats/h1/demo.d1"
+        assert item.payload.counts == {"in": 3} and item.payload.rejected == {"bad_payload": 1}
+    finally:
+        stop.set()
+        t.join(5)
+    wait_for(lambda: watcher.alive("arena/sys/alive/**") == [], what="token gone")
+
+
+def test_matching_follows_subscribers_across_sessions(bus_factory: Callable[[], Bus]) -> None:
+    a, b = bus_factory(), bus_factory()
+    pub = a.stream_publisher(keys.pose("d1"), wire.Pose)
+    assert pub.matching is False  # nobody yet (and from now on Zenoh tells the publisher)
+    sub = b.subscribe(keys.pose("d1"), capacity=10, ring=True)
+    wait_for(lambda: pub.matching, what="the other session's subscriber")
+    sub.close()
+    wait_for(lambda: not pub.matching, what="the subscriber gone")
+    local = a.subscribe("arena/*/pose", capacity=10, ring=True)
+    wait_for(lambda: pub.matching, what="a subscriber of the same session, by a wildcard")
+    local.close()
+    pub.close()
+    assert pub.matching is False  # closed: nothing matches, nothing raises
