@@ -57,7 +57,7 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
 from arena_common.bus.session import Bus, Handler, Lane, Received, Subscription, typed
@@ -65,6 +65,7 @@ from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.gateway.commands import CommandExecutor
 from arena_common.gateway.events import EventSink
+from arena_common.gateway.options import GatewayOptions
 from arena_common.gateway.origin import GlobalOrigin
 from arena_common.gateway.setpoints import SetpointForwarder
 from arena_common.gateway.state import VehicleState
@@ -84,35 +85,6 @@ __all__ = ["Gateway", "GatewayOptions"]
 MAV_TYPE_GCS = 6
 MAV_AUTOPILOT_INVALID = 8
 MSG_ESTIMATOR_STATUS = 230
-
-
-@dataclass(frozen=True, slots=True)
-class GatewayOptions:
-    """Tuning of one gateway; the vehicle's config section gives the rest (link, system id, vision)."""
-
-    source_system: int = 245  # our MAVLink system id (255 is QGroundControl's)
-    source_component: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
-    # Hz, arena/<drone>/state; None: the vehicle's ``state_rate`` in the config
-    state_rate: float | None = None
-    unwatched_rate: float = 10.0  # Hz of the supervisor's checks while nobody subscribes to the state
-    # Hz per message type on arena/<drone>/telemetry/<MSG> (0: none); None: the vehicle's ``telemetry_rate``
-    telemetry_rate: float | None = None
-    stream_rate: float = 20.0  # Hz, offboard setpoints repeated while their lease runs
-    link_timeout: float = 3.0  # s without HEARTBEAT = link lost
-    ack_timeout: float = 0.8  # s per COMMAND_LONG attempt
-    attempts: int = 3  # COMMAND_LONG attempts (confirmation 0, 1, 2)
-    prestream: float = 0.5  # s of setpoint stream before OFFBOARD may be requested
-    fused_tolerance: float = 0.2  # m between the EKF position and the vision pose to call it fused
-    vision_stale: float = 0.2  # s since the last pose sent beyond which arming is refused
-    send_velocity: bool = True  # put the pose's velocity (when valid) in ODOMETRY
-    goto_speed: float = 1.0  # m/s, horizontal speed of the goto carrot (capped by arena.max_speed)
-    goto_climb: float = 0.5  # m/s, vertical speed of the goto carrot (capped by arena.max_climb)
-    allow_gcs_manual: bool = False  # forward RC_CHANNELS_OVERRIDE / MANUAL_CONTROL from the GCS
-    check_at_start: bool = True  # read the arena parameters whenever the link comes up
-    gcs: str | None = None  # overrides the vehicle's `gcs` connection string when not None
-    # EKF global origin (lat deg, lon deg, alt m AMSL) given to an EKF that has none; None: never sent
-    origin: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
-    estimator_rate: float = 5.0  # Hz of ESTIMATOR_STATUS asked for (position validity); 0: not asked
 
 
 class Gateway:
@@ -173,64 +145,17 @@ class Gateway:
             stats=self.stats,
             offset_ns=clock.offset_ns if clock is not None else None,
         )
-        self.commander = MavCommander(self.link, v.system_id, ack_timeout=o.ack_timeout, attempts=o.attempts)
-        self.params = ParamClient(self.link, v.system_id, timeout=o.ack_timeout, attempts=o.attempts)
-        # The autopilot's own parameter metadata (COMPONENT_METADATA + MAVLink FTP): which parameters need
-        # a reboot.  Never reset an FTP session: a ground station may be using it through the forwarder.
-        self.metadata = MetadataClient(self.link, v.system_id, reset_busy=False)
+        self.commander, self.params, self.metadata, self.setup = self._protocols()
         self._reboot_names: frozenset[str] | None = None
-        self.setup = SetupChecker(self.params, self.events, reboot_required=self._reboot_required)
-        self.forwarder = SetpointForwarder(
-            self.link,
-            v.system_id,
-            cfg.arena,
-            self.events,
-            rate=o.stream_rate,
-            prestream=o.prestream,
-            goto_speed=o.goto_speed,
-            goto_climb=o.goto_climb,
-            position=lambda: self.state.position(time.monotonic()),
-            velocity=lambda: self.state.v if self.state.position(time.monotonic()) is not None else None,
-            stats=self.stats,
-        )
-        self.executor = CommandExecutor(
-            vehicle=v,
-            arena=cfg.arena,
-            state=self.state,
-            vision=self.vision,
-            commander=self.commander,
-            params=self.params,
-            setup=self.setup,
-            forwarder=self.forwarder,
-            timesync=self.timesync,
-            events=self.events,
-            origin=self.origin,
-            vision_stale=o.vision_stale,
-            clock_problem=self.clock_problem if clock is not None else None,
-        )
+        self.forwarder = self._setpoint_forwarder()
+        self.executor = self._command_executor()
         self.telemetry = TelemetryPublisher(bus, v.name, self.telemetry_rate, exclude=(MSG["TIMESYNC"],))
         gcs_url = o.gcs if o.gcs is not None else v.gcs
         self.gcs = GcsForwarder(gcs_url, self.link, allow_manual=o.allow_gcs_manual) if gcs_url else None
         self.state.on_mode_change.append(self._mode_changed)
         self.state.on_reboot.append(self._rebooted)
         self.state.on_link_change.append(self._link_changed)
-        self._handlers = {
-            MSG["HEARTBEAT"]: self.state.on_heartbeat,
-            MSG["SYS_STATUS"]: self.state.on_sys_status,
-            MSG["EXTENDED_SYS_STATE"]: self.state.on_ext_sys_state,
-            MSG["LOCAL_POSITION_NED"]: self.state.on_local_position,
-            MSG["ATTITUDE_QUATERNION"]: self.state.on_attitude,
-            MSG["BATTERY_STATUS"]: self.state.on_battery,
-            MSG["STATUSTEXT"]: self.state.on_statustext,
-            MSG["ESTIMATOR_STATUS"]: self.state.on_estimator_status,
-            MSG["TIMESYNC"]: self.timesync.on_timesync,
-            MSG["COMMAND_ACK"]: self.commander.on_ack,
-            MSG["PARAM_VALUE"]: self.params.on_param_value,
-        }
-        for msgid in HANDLED_MESSAGES:
-            self._handlers[msgid] = self.metadata.on_message
-        if self.origin is not None:
-            self._handlers[MSG["GPS_GLOBAL_ORIGIN"]] = self.origin.on_gps_global_origin
+        self._handlers = self._message_handlers()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._state_pub = (
@@ -245,6 +170,71 @@ class Gateway:
         self._link_counts: dict[str, int] = {}
         self._intervals_wanted = False
         self._position_problem: str | None = None
+
+    def _protocols(self) -> tuple[MavCommander, ParamClient, MetadataClient, SetupChecker]:
+        """The MAVLink exchanges with the autopilot: commands, parameters, its metadata, the setup check."""
+        v, o = self.spec, self.options
+        commander = MavCommander(self.link, v.system_id, ack_timeout=o.ack_timeout, attempts=o.attempts)
+        params = ParamClient(self.link, v.system_id, timeout=o.ack_timeout, attempts=o.attempts)
+        # The autopilot's own parameter metadata (COMPONENT_METADATA + MAVLink FTP): which parameters need
+        # a reboot.  Never reset an FTP session: a ground station may be using it through the forwarder.
+        metadata = MetadataClient(self.link, v.system_id, reset_busy=False)
+        setup = SetupChecker(params, self.events, reboot_required=self._reboot_required)
+        return commander, params, metadata, setup
+
+    def _setpoint_forwarder(self) -> SetpointForwarder:
+        o = self.options
+        return SetpointForwarder(
+            self.link,
+            self.spec.system_id,
+            self.cfg.arena,
+            self.events,
+            rate=o.stream_rate,
+            prestream=o.prestream,
+            goto_speed=o.goto_speed,
+            goto_climb=o.goto_climb,
+            position=lambda: self.state.position(time.monotonic()),
+            velocity=lambda: self.state.v if self.state.position(time.monotonic()) is not None else None,
+            stats=self.stats,
+        )
+
+    def _command_executor(self) -> CommandExecutor:
+        return CommandExecutor(
+            vehicle=self.spec,
+            arena=self.cfg.arena,
+            state=self.state,
+            vision=self.vision,
+            commander=self.commander,
+            params=self.params,
+            setup=self.setup,
+            forwarder=self.forwarder,
+            timesync=self.timesync,
+            events=self.events,
+            origin=self.origin,
+            vision_stale=self.options.vision_stale,
+            clock_problem=self.clock_problem if self.clock is not None else None,
+        )
+
+    def _message_handlers(self) -> dict[int, Callable[[Any, float], None]]:
+        """Which object reads each message the autopilot sends (the rest goes to telemetry only)."""
+        handlers: dict[int, Callable[[Any, float], None]] = {
+            MSG["HEARTBEAT"]: self.state.on_heartbeat,
+            MSG["SYS_STATUS"]: self.state.on_sys_status,
+            MSG["EXTENDED_SYS_STATE"]: self.state.on_ext_sys_state,
+            MSG["LOCAL_POSITION_NED"]: self.state.on_local_position,
+            MSG["ATTITUDE_QUATERNION"]: self.state.on_attitude,
+            MSG["BATTERY_STATUS"]: self.state.on_battery,
+            MSG["STATUSTEXT"]: self.state.on_statustext,
+            MSG["ESTIMATOR_STATUS"]: self.state.on_estimator_status,
+            MSG["TIMESYNC"]: self.timesync.on_timesync,
+            MSG["COMMAND_ACK"]: self.commander.on_ack,
+            MSG["PARAM_VALUE"]: self.params.on_param_value,
+        }
+        for msgid in HANDLED_MESSAGES:
+            handlers[msgid] = self.metadata.on_message
+        if self.origin is not None:
+            handlers[MSG["GPS_GLOBAL_ORIGIN"]] = self.origin.on_gps_global_origin
+        return handlers
 
     # -- lifetime ------------------------------------------------------------------------------------
     def start(self) -> Gateway:
@@ -329,15 +319,8 @@ class Gateway:
             self.link.mav.heartbeat_encode(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, px4.MAV_STATE_ACTIVE)
         )
         self.timesync.request()
-        ts = self.timesync
-        if ts.rtt_s is not None:
-            fields = {
-                "rtt": ts.rtt_s,
-                "rtt_min": ts.rtt_min_s,
-                "offset": ts.offset_s,
-                "answered": ts.answered,
-            }
-            self._safe(self.telemetry.put, "timesync", fields, wire.now_ns())
+        if self.timesync.rtt_s is not None:
+            self._safe(self.telemetry.put, "timesync", self.timesync.fields(), wire.now_ns())
 
     def clock_problem(self) -> str | None:
         """Why pose times cannot be trusted on this host (arming is refused), or None."""

@@ -1,4 +1,15 @@
-"""TIMESYNC: answering the autopilot at once, and measuring the link's round trip and offset."""
+"""TIMESYNC: answering the autopilot at once, and measuring the link's round trip and offset.
+
+How PX4 v1.16 uses our answers (``src/modules/mavlink/mavlink_timesync.cpp``, ``src/lib/timesync/Timesync.cpp``
+and ``Timesync.hpp``): it asks at 10 Hz on the offboard link (the TIMESYNC stream), takes an answer's ``tc1``
+(ns, our clock) and echoed ``ts1`` (ns, its own) as one offset sample when the round trip is under 10 ms
+(``MAX_RTT_SAMPLE``), and trusts its offset estimate only after 500 accepted samples
+(``CONVERGENCE_WINDOW``): about 50 s after we start answering.  Until then it stamps every vision sample
+with its arrival time instead of our ``time_usec``; five samples in a row more than 100 ms off a converged
+estimate (a step of our clock) start it over.  An answer's TIMESYNC target fields are left 0 (broadcast):
+MAVLink 2 drops trailing zero bytes, so the frame is the same as one without those extension fields, and
+PX4 v1.16 SITL converged on it after exactly 500 requests (measured).
+"""
 
 from __future__ import annotations
 
@@ -9,12 +20,18 @@ from typing import Any
 
 from arena_common.mavlink.link import MavlinkLink
 
+PX4_CONVERGENCE_WINDOW = 500  # accepted samples before PX4 uses its offset (Timesync.hpp)
+PX4_MAX_RTT_S = 0.010  # PX4 ignores samples with a longer round trip (Timesync.hpp MAX_RTT_SAMPLE)
+
 
 class TimeSync:
     """Answers the autopilot's TIMESYNC requests at once, and measures round trip and offset with our own.
 
     Our clock is ``clock_ns`` (wall-clock ns by default): the same clock stamps vision ``time_usec``.
     The offset is the autopilot's clock minus ours, from the fastest of the last 16 round trips.
+    ``answered_since_reset`` counts the autopilot's requests answered since the gateway started or the
+    autopilot rebooted; :attr:`autopilot_converged` says whether PX4 has had enough of them to use our
+    stamps (its own view: ``timesync_status`` / vision ``timestamp_sample`` in its log).
     """
 
     def __init__(self, link: MavlinkLink, clock_ns: Callable[[], int] = time.time_ns) -> None:
@@ -23,14 +40,36 @@ class TimeSync:
         self._pending: collections.OrderedDict[int, None] = collections.OrderedDict()
         self._samples: collections.deque[tuple[int, int]] = collections.deque(maxlen=16)
         self.answered = 0
+        self.answered_since_reset = 0
         self.rtt_s: float | None = None
         self.offset_s: float | None = None
         self.rtt_min_s: float | None = None
 
+    @property
+    def autopilot_converged(self) -> bool:
+        """Whether PX4 has had :data:`PX4_CONVERGENCE_WINDOW` answers since the gateway started or it rebooted:
+        from then on (if their round trips were under :data:`PX4_MAX_RTT_S`) it takes our vision stamps,
+        before it uses their arrival time.  An estimate: the link's round trip is PX4's to judge."""
+        return self.answered_since_reset >= PX4_CONVERGENCE_WINDOW
+
+    def fields(self) -> dict[str, Any]:
+        """The gateway's ``timesync`` telemetry: round trip (last, fastest of 16) and offset [s], answers
+        given, and whether PX4 should by now take our vision stamps (:attr:`autopilot_converged`)."""
+        return {
+            "rtt": self.rtt_s,
+            "rtt_min": self.rtt_min_s,
+            "offset": self.offset_s,
+            "answered": self.answered,
+            "autopilot_converged": self.autopilot_converged,
+        }
+
     def on_timesync(self, msg: Any, now: float) -> None:
+        """A TIMESYNC from the autopilot: a request (``tc1`` 0) is answered at once with our clock in
+        ``tc1`` and its ``ts1`` echoed (both ns); an answer to one of ours updates round trip and offset."""
         if msg.tc1 == 0:
+            self.answered += 1  # counted first: whoever sees the answer sees it counted
+            self.answered_since_reset += 1
             self.link.send(self.link.mav.timesync_encode(self.clock_ns(), msg.ts1))
-            self.answered += 1
             return
         if msg.ts1 not in self._pending:
             return  # an answer to someone else (a GCS through the forwarder)
@@ -54,6 +93,7 @@ class TimeSync:
         self.link.send(self.link.mav.timesync_encode(0, ts))
 
     def reset(self) -> None:
-        """Forget the measurements (the autopilot rebooted: its clock restarted)."""
+        """Forget the measurements (the autopilot rebooted: its clock and its TIMESYNC filter restarted)."""
         self._samples.clear()
         self.offset_s = None
+        self.answered_since_reset = 0

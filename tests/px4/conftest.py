@@ -109,8 +109,8 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
     ``px4_arena(vehicles=("d1",), preset="arena", px4_params=None)`` → ``(stack, arena)`` once every
     vehicle's gateway reports its link and, when ``fused`` (default: with the "arena" preset), vision
     fused, setup verified and PX4's own pre-flight checks passed.  ``require_setup`` false lets the
-    gateways arm a PX4 whose parameters differ from the arena's.  Everything stops at the end of the
-    test; logs stay in ``tmp_path``.
+    gateways arm a PX4 whose parameters differ from the arena's; ``keep_log`` keeps PX4's ULog
+    (:meth:`Px4Stack.ulog`).  Everything stops at the end of the test; logs stay in ``tmp_path``.
     """
     taken: list[int] = []
     stacks: list[tuple[Px4Stack, Arena]] = []
@@ -123,6 +123,7 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
         ready_timeout: float = 90.0,
         require_setup: bool = True,
         fused: bool | None = None,
+        keep_log: bool = False,
     ) -> tuple[Px4Stack, Arena]:
         if fused is None:
             fused = preset == "arena"
@@ -138,7 +139,7 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
             px4_params=px4_params,
             require_setup=require_setup,
         )
-        cm = px4_stack(cfg, tmp_path)
+        cm = px4_stack(cfg, tmp_path, keep_log=keep_log)
         stack = cm.__enter__()
         closers.append(lambda: cm.__exit__(None, None, None))
         arena = Arena(cfg, name="px4-tier")

@@ -143,6 +143,7 @@ class Px4Stack:
     px4: dict[str, Px4Sitl] = field(default_factory=dict)
     procs: dict[str, _Proc] = field(default_factory=dict)
     boot_s: dict[str, float] = field(default_factory=dict)
+    keep_log: bool = False  # PX4 writes its ULog (~1 MB/s): :meth:`ulog` after :meth:`stop_px4`
     _files: list[IO[str]] = field(default_factory=list)
 
     # -- PX4 ----------------------------------------------------------------------------------------------
@@ -157,11 +158,22 @@ class Px4Stack:
             out.write(f"{time.strftime('%H:%M:%S')} {line}\n")
             out.flush()
 
-        px4 = Px4Sitl(spec.px4_instance, params=boot_params(self.cfg, spec), output=write)
+        px4 = Px4Sitl(
+            spec.px4_instance, params=boot_params(self.cfg, spec), output=write, keep_log=self.keep_log
+        )
         self.px4[vehicle] = px4
         px4.start()
         self.boot_s[vehicle] = px4.wait_ready()
         return self.boot_s[vehicle]
+
+    def stop_px4(self, vehicle: str) -> None:
+        """Stop ``vehicle``'s PX4 and keep its working directory (its ULog) until :meth:`close`."""
+        self.px4[vehicle].stop(keep=True)
+
+    def ulog(self, vehicle: str) -> Path | None:
+        """The newest ULog ``vehicle``'s PX4 wrote (``keep_log``; complete once :meth:`stop_px4` returned)."""
+        logs = sorted(self.px4[vehicle].workdir.rglob("*.ulg"), key=lambda p: p.stat().st_mtime)
+        return logs[-1] if logs else None
 
     # -- services -----------------------------------------------------------------------------------------
     def _argv(self, module: str, vehicle: str | None) -> list[str]:
@@ -242,9 +254,9 @@ class Px4Stack:
 
 
 @contextmanager
-def px4_stack(cfg: ArenaConfig, logs: Path) -> Iterator[Px4Stack]:
+def px4_stack(cfg: ArenaConfig, logs: Path, keep_log: bool = False) -> Iterator[Px4Stack]:
     """A started :class:`Px4Stack`; everything stopped at the end, whatever happened."""
-    stack = Px4Stack(cfg, logs)
+    stack = Px4Stack(cfg, logs, keep_log=keep_log)
     try:
         stack.start_all()
         yield stack
@@ -263,6 +275,19 @@ NAV_STATES = {
 ARMING_STATES = {1: "disarmed", 2: "armed"}
 #: failsafe_flags a test of the tier looks at.
 FAILSAFE_FLAGS = ("offboard_control_signal_lost", "local_position_invalid", "local_altitude_invalid")
+
+
+def timesync_converged(px4: Px4Sitl) -> bool:
+    """PX4 stamps vision with the gateway's measurement time, not its arrival: its TIMESYNC filter has
+    converged (500 answered requests at 10 Hz, ~50 s: src/lib/timesync/Timesync.hpp)."""
+    try:
+        odometry = px4.listener("vehicle_visual_odometry")
+    except Px4SitlError:
+        return False
+    arrival, sample = odometry.get("timestamp"), odometry.get("timestamp_sample")
+    if not isinstance(arrival, int | float) or not isinstance(sample, int | float):
+        return False
+    return arrival - sample > 1000
 
 
 def nav_state(status: Mapping[str, object]) -> str:

@@ -19,8 +19,8 @@ from tests.px4.harness import FlightRecord
 
 GOTO = (0.0, 0.8, -1.2)  # arena NED [m]: 1 m north, 0.8 m east of d1's start, 1.2 m up
 # With the arena's EKF2 settings (EKF2_EV_DELAY 0 ms, EKF2_EVP_NOISE 0.02 m; tests/px4/tune_vision.py measured
-# a held point truly 5-13 cm away at the median, 15-19 cm at most, and the estimate 3-5 cm off): bounds with
-# room for a loaded machine.
+# a held point truly 7-23 cm away at the median, 14-26 cm at most, and the estimate 3-6 cm off, docs/px4.md):
+# bounds with room for a loaded machine.
 HOLD_MAX_M = 0.4  # how far the vehicle may truly stray from a point it holds
 ESTIMATE_P50_M = 0.15  # median horizontal / vertical estimate error in hover and hold
 ESTIMATE_MAX_M = 0.4  # largest estimate error of the flight

@@ -6,9 +6,10 @@
 Each point boots a fresh PX4 v1.16 SITL with the arena's parameters and the point's ``EKF2_EV_DELAY``
 [ms] and ``EKF2_EVP_NOISE`` [m] (``EKF2_EVA_NOISE`` follows as noise × 2.5 rad/m, at least 0.05 rad),
 flies the same pattern through the arena's unchanged pipeline (take off 1 m, hover, two gotos of 1 m,
-hold), and measures PX4's estimate against SIH's truth (:class:`~tests.px4.harness.FlightRecord`): the
-lag that best explains the estimate, the estimate error while moving and holding, and how far the vehicle
-truly strays from a point it holds.  ``docs/px4.md`` has the table this printed and why the arena sets
+hold) once PX4's TIMESYNC has converged (about 50 s after boot; ``--no-timesync``: at once), and measures
+PX4's estimate against SIH's truth (:class:`~tests.px4.harness.FlightRecord`): the lag that best
+explains the estimate, the estimate error while moving and holding, and how far the vehicle truly strays
+from a point it holds.  ``docs/px4.md`` has the table this printed and why the arena sets
 what it sets.
 """
 
@@ -28,7 +29,7 @@ from arena_common.bus.session import BusOptions, open_bus
 from arena_common.core.config import ZenohSpec
 from arena_common.runtime.px4_sitl import is_true
 from tests.conftest import free_port, wait_for
-from tests.px4.harness import FlightRecord, InstancePool, px4_stack, write_px4_config
+from tests.px4.harness import FlightRecord, InstancePool, px4_stack, timesync_converged, write_px4_config
 
 TARGETS = ((0.0, 0.0, -1.0), (0.0, 1.0, -1.0))  # arena NED, from a start at (-1, 0)
 
@@ -61,8 +62,10 @@ HEADER = (
 )
 
 
-def fly(delay_ms: float, noise_m: float, instance: int, workdir: Path, endpoint: str) -> Point:
-    """One flight at one setting."""
+def fly(
+    delay_ms: float, noise_m: float, instance: int, workdir: Path, endpoint: str, timesync: bool = True
+) -> Point:
+    """One flight at one setting; with ``timesync``, once PX4 takes the gateway's vision stamps."""
     params = {
         "EKF2_EV_DELAY": float(delay_ms),
         "EKF2_EVP_NOISE": float(noise_m),
@@ -86,6 +89,8 @@ def fly(delay_ms: float, noise_m: float, instance: int, workdir: Path, endpoint:
             interval=0.5,
             what="PX4's pre-flight checks to pass",
         )
+        if timesync:
+            wait_for(lambda: timesync_converged(px4), timeout=150, interval=1.0, what="PX4's TIMESYNC")
         record = FlightRecord(arena, "d1")
         record.phase("ground")
         for attempt in range(3):  # PX4 may still say "horizontal position unstable" for a moment
@@ -128,6 +133,12 @@ def main() -> None:
     ap.add_argument("--delay", type=float, action="append", help="EKF2_EV_DELAY [ms] (repeatable)")
     ap.add_argument("--noise", type=float, action="append", help="EKF2_EVP_NOISE [m] (repeatable)")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument(
+        "--no-timesync",
+        action="store_true",
+        help="fly at once, before PX4's TIMESYNC converged (PX4 then stamps vision with its arrival time)",
+    )
+    ap.add_argument("--instances", type=int, nargs="+", default=[7, 8, 9], help="PX4 SITL instance numbers")
     args = ap.parse_args()
     delays = args.delay or [0.0, 20.0]
     noises = args.noise or [0.1, 0.02]
@@ -136,7 +147,7 @@ def main() -> None:
         ZenohSpec(mode="router", connect=(), router_listen=(endpoint,)),
         BusOptions(settings={"connect/endpoints": []}),
     )
-    pool = InstancePool()
+    pool = InstancePool(args.instances)
     rows: list[Point] = []
     try:
         for (delay, noise), _ in itertools.product(itertools.product(delays, noises), range(args.repeat)):
@@ -144,7 +155,7 @@ def main() -> None:
             try:
                 tmp = Path(tempfile.mkdtemp(prefix="tune-vision-"))
                 try:
-                    point = fly(delay, noise, n, tmp, endpoint)
+                    point = fly(delay, noise, n, tmp, endpoint, timesync=not args.no_timesync)
                 except (ArenaError, AssertionError, RuntimeError) as exc:
                     print(f"| {delay:g} | {noise:g} | failed: {exc} (logs in {tmp}) |", flush=True)
                     continue

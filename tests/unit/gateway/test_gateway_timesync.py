@@ -1,0 +1,175 @@
+"""The gateway's TIMESYNC answers as PX4 v1.16 sees them: frames built and read byte by byte on a real UDP
+socket, and PX4's own filter (``src/lib/timesync/Timesync.cpp``, ``Timesync.hpp``) run on the answers."""
+
+from __future__ import annotations
+
+import math
+import socket
+import struct
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import pytest
+from pymavlink.generator.mavcrc import x25crc
+
+from arena_common.gateway.timesync import PX4_CONVERGENCE_WINDOW, PX4_MAX_RTT_S, TimeSync
+from arena_common.mavlink.link import MSG, MavlinkLink
+from tests.conftest import free_port
+from tests.unit.gateway.test_gateway_link import Pump
+
+TIMESYNC_ID = 111
+TIMESYNC_CRC_EXTRA = 34  # the same with or without the v1.16 target fields (extensions do not count)
+PX4_SYSID, PX4_COMPID = 1, 1
+WALL_OFFSET_NS = 1_795_708_455_000_000_000  # the gateway's clock minus PX4's boot clock, as in the SITL logs
+
+
+def px4_frame(seq: int, tc1: int, ts1: int, target_system: int = 0, target_component: int = 0) -> bytes:
+    """A MAVLink 2 TIMESYNC frame as PX4 v1.16 packs it: tc1, ts1 (int64 ns) and the extension fields
+    target_system, target_component, with MAVLink 2's trailing zero bytes dropped."""
+    payload = struct.pack("<qqBB", tc1, ts1, target_system, target_component).rstrip(b"\0") or b"\0"
+    header = struct.pack("<BBBBBB", len(payload), 0, 0, seq & 0xFF, PX4_SYSID, PX4_COMPID)
+    header += TIMESYNC_ID.to_bytes(3, "little")
+    crc = x25crc(header + payload)
+    crc.accumulate(bytes([TIMESYNC_CRC_EXTRA]))
+    return b"\xfd" + header + payload + struct.pack("<H", crc.crc)
+
+
+def read_timesync(data: bytes) -> tuple[int, int, int, int]:
+    """(tc1, ts1, target_system, target_component) of a MAVLink 2 TIMESYNC frame, CRC checked."""
+    assert data[0] == 0xFD, data[:1]
+    length = data[1]
+    assert int.from_bytes(data[7:10], "little") == TIMESYNC_ID
+    payload = data[10 : 10 + length]
+    crc = x25crc(data[1 : 10 + length])
+    crc.accumulate(bytes([TIMESYNC_CRC_EXTRA]))
+    assert struct.unpack("<H", data[10 + length : 12 + length])[0] == crc.crc
+    tc1, ts1, target_system, target_component = struct.unpack("<qqBB", payload.ljust(18, b"\0"))
+    return tc1, ts1, target_system, target_component
+
+
+@dataclass
+class Px4Timesync:
+    """PX4 v1.16's ``Timesync::update`` and ``sync_stamp`` (src/lib/timesync/Timesync.cpp), in µs."""
+
+    sequence: int = 0
+    offset: float = 0.0
+    skew: float = 0.0
+    accepted: int = 0
+    rejected: int = 0
+
+    def update(self, now_us: int, tc1_ns: int, ts1_ns: int) -> None:
+        offset_us = (ts1_ns // 1000 + now_us - (tc1_ns // 1000) * 2) // 2
+        rtt_us = now_us - ts1_ns // 1000
+        if rtt_us >= PX4_MAX_RTT_S * 1e6:
+            self.rejected += 1
+            return
+        if self.converged and abs(self.offset - offset_us) > 100_000:
+            self.rejected += 1
+            return
+        if self.converged:
+            alpha = beta = 0.003
+        else:
+            p = 1.0 - math.exp(0.5 * (1.0 - 1.0 / (1.0 - self.sequence / PX4_CONVERGENCE_WINDOW)))
+            alpha = beta = p * 0.003 + (1.0 - p) * 0.05
+        previous = self.offset
+        if self.sequence == 0:
+            self.offset = offset_us
+        else:
+            self.offset = alpha * offset_us + (1.0 - alpha) * (self.offset + self.skew)
+            self.skew = beta * (self.offset - previous) + (1.0 - beta) * self.skew
+        self.sequence += 1
+        self.accepted += 1
+
+    @property
+    def converged(self) -> bool:
+        return self.sequence >= PX4_CONVERGENCE_WINDOW
+
+    def sync_stamp(self, usec: int, now_us: int) -> int:
+        """A remote time (µs) on PX4's clock: converted once converged, else the arrival time."""
+        return int(usec + self.offset) if self.converged else now_us
+
+
+@pytest.fixture
+def px4_socket() -> Iterator[tuple[MavlinkLink, socket.socket]]:
+    """A gateway link (system 1) listening on UDP, and a raw UDP socket playing PX4."""
+    port = free_port(socket.SOCK_DGRAM)
+    link = MavlinkLink(f"udpin:127.0.0.1:{port}", PX4_SYSID)
+    link.open()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.connect(("127.0.0.1", port))
+    sock.settimeout(2.0)
+    try:
+        yield link, sock
+    finally:
+        link.close()
+        sock.close()
+
+
+def answer_to(sock: socket.socket, ts1: int) -> tuple[int, int, int, int]:
+    """The gateway's TIMESYNC answer echoing ``ts1`` (other frames skipped)."""
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        data = sock.recv(512)
+        if int.from_bytes(data[7:10], "little") != TIMESYNC_ID:
+            continue
+        fields = read_timesync(data)
+        if fields[0] != 0 and fields[1] == ts1:
+            return fields
+    raise AssertionError(f"no TIMESYNC answer to ts1={ts1}")
+
+
+def test_px4_v116_requests_answered_in_ns_and_echoed_exactly(
+    px4_socket: tuple[MavlinkLink, socket.socket],
+) -> None:
+    link, sock = px4_socket
+    clock = [1_795_708_458_099_012_345]
+    ts = TimeSync(link, clock_ns=lambda: clock[0])
+    pump = Pump(link, {MSG["TIMESYNC"]: ts.on_timesync})
+    try:
+        # PX4 asks with tc1 0 and ts1 its boot clock in ns; the target fields (extensions) 0 are dropped
+        # from the frame, others travel: both are answered.
+        for seq, (target_system, target_component) in enumerate(((0, 0), (255, 190))):
+            ts1 = 2_896_000_000 + seq * 100_000_000
+            request = px4_frame(seq, 0, ts1, target_system, target_component)
+            assert (request[1] < 16) if target_system == 0 else (request[1] == 18)  # payload length
+            sock.send(request)
+            tc1, echoed, answer_target_system, answer_target_component = answer_to(sock, ts1)
+            assert tc1 == clock[0]  # ns of the gateway's clock: PX4 divides by 1000
+            assert echoed == ts1  # bit for bit: PX4 computes the round trip from it
+            assert (answer_target_system, answer_target_component) == (0, 0)  # broadcast: PX4 accepts it
+        assert ts.answered == ts.answered_since_reset == 2
+        assert ts.fields()["answered"] == 2 and ts.fields()["autopilot_converged"] is False  # telemetry
+    finally:
+        pump.close()
+
+
+def test_px4_filter_converges_on_the_answers_and_maps_our_stamps(
+    px4_socket: tuple[MavlinkLink, socket.socket],
+) -> None:
+    """500 request/answer round trips over loopback, run through PX4's filter: it converges, and a vision
+    ``time_usec`` on the gateway's clock lands on PX4's clock within a millisecond."""
+    link, sock = px4_socket
+    ts = TimeSync(link, clock_ns=lambda: time.monotonic_ns() + WALL_OFFSET_NS)
+    pump = Pump(link, {MSG["TIMESYNC"]: ts.on_timesync})
+    px4 = Px4Timesync()
+    try:
+        seq = 0
+        while not px4.converged:
+            assert seq < 3 * PX4_CONVERGENCE_WINDOW, px4  # a loaded machine may see a slow round trip
+            ts1 = time.monotonic_ns()  # PX4's hrt in ns
+            sock.send(px4_frame(seq, 0, ts1))
+            tc1, echoed, _, _ = answer_to(sock, ts1)
+            px4.update(time.monotonic_ns() // 1000, tc1, echoed)
+            seq += 1
+            assert ts.autopilot_converged is (seq >= PX4_CONVERGENCE_WINDOW)  # our count of PX4's
+        assert ts.answered_since_reset == seq and ts.fields()["autopilot_converged"] is True
+        assert px4.accepted == PX4_CONVERGENCE_WINDOW
+        # The gateway stamps a vision sample with its clock (µs); PX4 maps it onto its own.
+        now_us = time.monotonic_ns() // 1000
+        stamped = px4.sync_stamp((now_us * 1000 + WALL_OFFSET_NS) // 1000, now_us)
+        assert abs(stamped - now_us) < 1000, (stamped - now_us, px4)
+        ts.reset()  # PX4 rebooted: its filter starts over
+        assert not ts.autopilot_converged and ts.answered_since_reset == 0 and ts.answered == seq
+    finally:
+        pump.close()
