@@ -494,7 +494,10 @@ def _run(
 
     def view() -> Group:
         snap.refresh()
-        return Group(snap.render(), Text.from_markup("\n".join(say.last())), Text(WATCH_3D, style="dim"))
+        # What the demo is doing first, then the vehicles: a terminal too short for everything crops the
+        # services and clocks tables at its bottom, never the progress.
+        progress = Text.from_markup("\n".join(say.last()))
+        return Group(progress, Text(WATCH_3D, style="dim"), snap.render(vehicles_first=True))
 
     live = Live(view(), console=console, auto_refresh=False)
 

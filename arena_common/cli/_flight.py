@@ -58,7 +58,8 @@ class Snapshot:
             if isinstance(item.payload, wire.ClockOffset):
                 self.clocks[f"{item.payload.host}/{item.payload.service}"] = item.payload
 
-    def render(self) -> Table:
+    def render(self, vehicles_first: bool = False) -> Table:
+        """The services, vehicles and clocks tables (vehicles first: what a terminal too short still shows)."""
         alive = self.bus.alive(keys.ALIVE_ALL, 0.5)
         services = Table(title="services", title_justify="left")
         for col in ("host", "service", "in/s", "out/s", "rej", "cpu %", "MB", "up s"):
@@ -116,8 +117,8 @@ class Snapshot:
                 ", ".join(s.fs),
             )
         grid = Table.grid()
-        grid.add_row(services)
-        grid.add_row(vehicles)
+        for table in (vehicles, services) if vehicles_first else (services, vehicles):
+            grid.add_row(table)
         grid.add_row(clock_table(self.clocks))
         return grid
 

@@ -56,7 +56,9 @@ class Arena:
 
     def state(self, vehicle: str = "x7") -> dict[str, Any]:
         """The vehicle's newest state, as ``arena echo arena/<d>/state -n 1 --json`` prints it."""
-        line = self.run("echo", f"arena/{vehicle}/state", "-n", "1", "--json").strip().splitlines()[-1]
+        out = self.run("echo", f"arena/{vehicle}/state", "-n", "1", "--json")
+        # The JSON line on stdout; a warning of the command's own (its clock, say) may follow on stderr.
+        line = next(line for line in reversed(out.splitlines()) if line.startswith("{"))
         payload: dict[str, Any] = json.loads(line)["payload"]
         return payload
 

@@ -278,12 +278,19 @@ def test_make_run_flies_in_a_terminal_and_ctrl_c_lands_before_the_arena_stops(tm
     term = Terminal(["make", "run", f"CONFIG={cfg}"], here, _make_env())
     try:
         # The live status table, with the vehicles in the air.
-        wait_for(
-            lambda: "formation step 1/6" in term.text() or term.popen.poll() is not None,
-            timeout=FLYING_S,
-            interval=0.5,
-            what="the formation flying on the terminal",
-        )
+        try:
+            wait_for(
+                lambda: "formation step 1/6" in term.text() or term.popen.poll() is not None,
+                timeout=FLYING_S,
+                interval=0.5,
+                what="the formation flying on the terminal",
+            )
+        except TimeoutError as exc:
+            log = here / "arena-demo.log"
+            tail = log.read_text(errors="replace")[-6000:] if log.exists() else "(no arena-demo.log)"
+            raise AssertionError(
+                f"{exc}\n--- terminal\n{term.text()[-4000:]}\n--- arena-demo.log\n{tail}"
+            ) from None
         assert term.popen.poll() is None, term.text()[-5000:]
         shown = term.text()
         for name in ("d1", "d2", "d3"):
