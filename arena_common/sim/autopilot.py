@@ -179,11 +179,6 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
             )
         except (OSError, ValueError, MavlinkLinkError) as exc:
             raise SimAutopilotError(f"cannot open MAVLink connection {connection!r}: {exc}") from exc
-        port = getattr(self.conn, "port", None)
-        if connection.startswith("udpout:") and port is not None:
-            # The link a simulated vehicle stands for (a serial line, a radio, a companion's UART) has one
-            # peer: a connected socket reads only the gateway's datagrams, from no other address.
-            port.connect(self.conn.destination_addr)
         if not type(self.conn.mav).__module__.startswith("pymavlink.dialects.v20."):
             self.conn.close()
             raise SimAutopilotError("pymavlink was loaded for MAVLink 1; import this module before pymavlink")

@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import time
 
+import pytest
+
+from arena_common.core.errors import SafetyRefused
 from tests.conftest import wait_for
 from tests.px4.conftest import PX4ArenaFactory
 from tests.px4.harness import FlightRecord, Px4Watch
@@ -34,7 +37,9 @@ def test_attitude_thrust_climbs_and_the_ceiling_stops_the_stream(px4_arena: PX4A
         d1.takeoff(1.0, timeout=60)
         start = record.latest_truth()
         assert start is not None
-        with d1.offboard() as ctl:
+        # The program learns that its stream was refused: SafetyRefused, at the latest when the block ends.
+        refused = pytest.raises(SafetyRefused, match="attitude setpoints only inside the safe volume")
+        with refused, d1.offboard() as ctl:
             ctl.attitude(0.0, 0.0, 0.0, min(1.0, hover + 0.15))  # level, more than hover thrust
             wait_for(lambda: watch.latest and watch.latest.nav == "OFFBOARD", 5, 0.05, "PX4 in OFFBOARD")
             stopped = next(

@@ -65,6 +65,7 @@ sim = {{ start = [1.0, 0.0] }}
 rigid_body = 3
 mavlink = "udpin:127.0.0.1:14543"
 system_id = 13
+signing_key_file = "keys/c3.key"
 vision_rate = 30.0
 state_rate = 20.0
 telemetry_rate = 2.0
@@ -212,7 +213,7 @@ def test_lab_steps_then_the_outsider_cannot_command_spoof_or_divert(
     cfg = tmp_path / "lab.toml"
     cfg.write_text(lab_config(kind, tmp_path))
     (tmp_path / "keys").mkdir()
-    for v in ("c1", "c2"):
+    for v in ("c1", "c2", "c3"):  # the simulated autopilots' own ports are on the network too: signed
         generate_key_file(tmp_path / "keys" / f"{v}.key")
     # The README's lab steps, as typed on the ground computer (the credentials are copied to each host:
     # here the namespaces share this folder).
