@@ -54,7 +54,7 @@ TAKEOFF_MAX_S = 25.0
 
 
 @pytest.mark.timeout(480)
-def test_issue25_targets_from_px4s_log(px4_arena: PX4ArenaFactory, tmp_path: Path) -> None:
+def test_flight_targets_from_px4s_log(px4_arena: PX4ArenaFactory, tmp_path: Path) -> None:
     stack, arena = px4_arena(("d1",), keep_log=True)
     px4 = stack.px4["d1"]
     d1 = arena.vehicle("d1")
