@@ -6,7 +6,7 @@ One flight: PX4's TIMESYNC converged first (so PX4 takes the gateway's vision st
 the truth).  The targets and what holds instead (docs/px4.md, "Issue 25, re-measured"):
 
 - the arena's part — the vision PX4 receives, at its own ``timestamp_sample``, vs the truth — is within
-  30 ms and 2 cm (measured −6…+9 ms, 0.5–0.6 cm rms): issue 25's target for it is met and asserted;
+  30 ms and 2 cm (measured −6…+9 ms, 0.5–0.6 cm rms): the target for it is met and asserted;
 - PX4's estimate within 30 ms of the mocap pose: not met on SIH.  ``vehicle_local_position`` trails the
   vision PX4 was given by 180–245 ms, fed by the arena or straight from SIH's truth alike, so it is
   PX4/SIH's: PX4's log shows the vision fused healthily (innovations 1 cm rms, test ratios < 0.1) at a
@@ -42,7 +42,7 @@ from tests.px4.harness import FlightRecord, timesync_converged
 from tools.ulog_report import analyse, read_ulog, render
 
 HEIGHT = 1.0
-VISION_LAG_MAX_MS = 30.0  # the arena's part: issue 25's target, met
+VISION_LAG_MAX_MS = 30.0  # the arena's part: the target, met
 VISION_RMS_MAX_M = 0.02
 ESTIMATE_LAG_MAX_MS = 400.0  # target 30 ms; PX4 on SIH: 180-245 ms measured
 HOVER_P50_MAX_M = 0.30  # target 0.05 m; measured 0.10-0.19
