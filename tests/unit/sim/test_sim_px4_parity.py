@@ -460,7 +460,7 @@ def test_estimate_lag_option() -> None:
         SimAutopilot(f"udpout:127.0.0.1:{port}", 1, estimate_lag=-1.0)
 
 
-# --- takeoff timing and leaving offboard (issue 25) --------------------------------------------------
+# --- takeoff timing and leaving offboard as PX4 does --------------------------------------------------
 
 
 def test_takeoff_takes_as_long_as_px4s(vehicle: Maker) -> None:
