@@ -77,8 +77,7 @@ def cli(
     ] = None,
 ) -> None:
     """One vehicle's poses decimated by time to its vision rate (arena/<drone>/vision)."""
-    cfg = shared.config
-    main(cfg, shared.bus, vehicle=vehicle, rate=rate, host=shared.host)
+    main(shared.config, shared.bus, vehicle=vehicle, rate=rate, host=shared.host)
 
 
 if __name__ == "__main__":

@@ -110,8 +110,7 @@ def cli(
     shared: Shared,
 ) -> None:
     """Motive frames (arena/sys/frames) → arena-frame poses with velocities (arena/<drone>/pose)."""
-    cfg = shared.config
-    main(cfg, shared.bus, host=shared.host)
+    main(shared.config, shared.bus, host=shared.host)
 
 
 if __name__ == "__main__":

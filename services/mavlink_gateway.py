@@ -75,7 +75,6 @@ def cli(
     ] = "0,0,0",
 ) -> None:
     """MAVLink gateway of one vehicle: vision out, state/telemetry/events in, commands, setpoints."""
-    cfg = shared.config
     if not 1 <= sysid <= 254:
         raise typer.BadParameter(f"--sysid must be within 1..254, got {sysid}")
     if state_rate is not None and not state_rate > 0:
@@ -94,7 +93,7 @@ def cli(
         state_rate=state_rate,
         origin=origin_lla,
     )
-    main(cfg, shared.bus, vehicle=vehicle, gateway=options, host=shared.host)
+    main(shared.config, shared.bus, vehicle=vehicle, gateway=options, host=shared.host)
 
 
 if __name__ == "__main__":

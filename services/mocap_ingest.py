@@ -74,8 +74,7 @@ def cli(
 ) -> None:
     """Receive Motive's rigid bodies; publish each frame on arena/sys/frames and each vehicle's on
     arena/<drone>/mocap."""
-    cfg = shared.config
-    main(cfg, shared.bus, host=shared.host)
+    main(shared.config, shared.bus, host=shared.host)
 
 
 if __name__ == "__main__":

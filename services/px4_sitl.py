@@ -107,8 +107,7 @@ def cli(
     ] = None,
 ) -> None:
     """A real PX4 SITL autopilot (SIH) for one vehicle, booted again whenever it exits."""
-    cfg = shared.config
-    main(cfg, shared.bus, vehicle=vehicle, host=shared.host, build=build)
+    main(shared.config, shared.bus, vehicle=vehicle, host=shared.host, build=build)
 
 
 if __name__ == "__main__":

@@ -171,8 +171,7 @@ def cli(
     rate: Annotated[float, typer.Option("--rate", help="Truth samples per second asked of PX4.")] = RATE,
 ) -> None:
     """SIH's ground truth of one PX4 SITL vehicle → arena/<drone>/truth (for the Motive emulator)."""
-    cfg = shared.config
-    main(cfg, shared.bus, vehicle=vehicle, host=shared.host, rate=rate)
+    main(shared.config, shared.bus, vehicle=vehicle, host=shared.host, rate=rate)
 
 
 if __name__ == "__main__":

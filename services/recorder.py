@@ -112,9 +112,8 @@ def cli(
     name: Annotated[str | None, typer.Option("--name", help="Name of the first file (default: rec).")] = None,
 ) -> None:
     """Record the bus into MCAP files (Foxglove, PlotJuggler, `arena rec info`)."""
-    cfg = shared.config
     yield_cpu(logging.getLogger("arena.recorder"))
-    main(cfg, shared.bus, host=shared.host, directory=directory, name=name)
+    main(shared.config, shared.bus, host=shared.host, directory=directory, name=name)
 
 
 if __name__ == "__main__":

@@ -88,9 +88,8 @@ def cli(
 ) -> None:
     """The arena as ROS 2 topics for rmw_zenoh (poses, odometry, TF, battery, diagnostics, /rosout), and
     goto / cmd_vel commands from ROS 2 under the arena's safety rules."""
-    cfg = shared.config
     main(
-        cfg,
+        shared.config,
         shared.bus,
         host=shared.host,
         domain=domain,

@@ -282,10 +282,9 @@ def cli(
     ] = None,
 ) -> None:
     """Motive emulator: stream the simulated vehicles' true poses as NatNet (or replay a capture)."""
-    cfg = shared.config
     try:
         main(
-            cfg,
+            shared.config,
             shared.bus,
             host=shared.host,
             natnet_version=natnet_version,

@@ -186,10 +186,9 @@ def cli(
     ] = 0.0,
 ) -> None:
     """Simulated PX4 vehicles speaking MAVLink 2, with their true poses on arena/<name>/truth."""
-    cfg = shared.config
     try:
         main(
-            cfg,
+            shared.config,
             shared.bus,
             vehicles=vehicle or (),
             speed=speed,

@@ -111,23 +111,17 @@ def claims(repo: Path = REPO) -> dict[str, list[str]]:
     for path in sorted((repo / "tests").rglob("*.py")):
         tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
         for node in ast.walk(tree):
-            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Module)):
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
-            decorators = node.decorator_list if not isinstance(node, ast.Module) else []
-            assigns = [
-                n.value for n in node.body if isinstance(node, ast.Module) and isinstance(n, ast.Assign)
-            ]
-            for dec in [*decorators, *assigns]:
-                for call in ast.walk(dec):
-                    if (
-                        isinstance(call, ast.Call)
-                        and isinstance(call.func, ast.Attribute)
-                        and call.func.attr == "covers"
-                    ):
-                        name = getattr(node, "name", "<module>")
-                        for arg in call.args:
-                            if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
-                                out.setdefault(arg.value, []).append(f"{path.relative_to(repo)}::{name}")
+            for dec in node.decorator_list:
+                if (
+                    isinstance(dec, ast.Call)
+                    and isinstance(dec.func, ast.Attribute)
+                    and dec.func.attr == "covers"
+                ):
+                    for arg in dec.args:
+                        if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+                            out.setdefault(arg.value, []).append(f"{path.relative_to(repo)}::{node.name}")
     return out
 
 

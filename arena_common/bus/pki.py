@@ -1,7 +1,7 @@
 """The lab's own certificate authority: one CA, one certificate per host of the config (CN = host name).
 
-``arena security init`` calls :func:`init_lab`; :func:`check_lab` (``arena security check``) verifies what
-a host needs before it starts: every file present, private keys and passwords readable by their owner
+``arena security init`` calls :func:`init_lab`; :func:`check_certificate` (``arena security check``)
+verifies what a host needs before it starts: every file present, private keys and passwords readable by their owner
 only, each certificate signed by the lab CA, named after its host and not expired.  Keys are ECDSA P-256,
 certificates valid for ``days`` days (default two years) with the host's name, its configured address,
 ``localhost`` and 127.0.0.1 as subject alternative names (a host's own services reach its router on
@@ -15,7 +15,6 @@ import ipaddress
 import os
 import stat
 from collections.abc import Iterable
-from dataclasses import dataclass
 from pathlib import Path
 
 from cryptography import x509
@@ -27,9 +26,8 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from arena_common.core.errors import ArenaError
 
 __all__ = [
-    "LabFiles",
     "PkiError",
-    "check_lab",
+    "check_certificate",
     "init_lab",
     "issue_certificate",
     "make_ca",
@@ -39,17 +37,6 @@ __all__ = [
 
 class PkiError(ArenaError):
     """A certificate or key that cannot be made or does not hold (named, with the reason)."""
-
-
-@dataclass(frozen=True, slots=True)
-class LabFiles:
-    """What :func:`init_lab` wrote: the CA, each host's certificate and key, the password files."""
-
-    directory: Path
-    ca: Path
-    certificates: dict[str, tuple[Path, Path]]
-    users: Path | None
-    passwords: dict[str, Path]
 
 
 def _write(path: Path, data: bytes, mode: int) -> None:
@@ -182,8 +169,9 @@ def check_certificate(ca_pem: Path, cert_pem: Path, key_pem: Path, name: str) ->
 
 def init_lab(
     directory: Path, arena_name: str, hosts: dict[str, str], names: Iterable[str] = (), *, force: bool = False
-) -> LabFiles:
-    """Make the lab CA and a certificate for every host (``name → address``) and extra identity ``names``.
+) -> dict[str, tuple[Path, Path]]:
+    """Make the lab CA and a certificate for every host (``name → address``) and extra identity ``names``:
+    each name's ``(certificate, key)``; the CA is ``ca.pem`` beside them.
 
     Refuses to overwrite an existing CA unless ``force`` (a new CA invalidates every certificate).
     The directory is made readable by its owner only.
@@ -196,16 +184,7 @@ def init_lab(
             f"{ca_pem} exists: a lab CA is already there (--force makes a new one and new certificates)"
         )
     make_ca(directory, arena_name)
-    certs = {
+    return {
         name: issue_certificate(ca_pem, ca_key, name, directory, [address])
         for name, address in {**hosts, **{n: "" for n in names}}.items()
     }
-    return LabFiles(directory, ca_pem, certs, None, {})
-
-
-def check_lab(ca_pem: Path, certificates: dict[str, tuple[Path, Path]]) -> list[str]:
-    """Every problem of the lab's certificates (empty: they hold)."""
-    problems: list[str] = []
-    for name, (pem, key) in certificates.items():
-        problems += check_certificate(ca_pem, pem, key, name)
-    return problems

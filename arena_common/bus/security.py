@@ -50,12 +50,7 @@ class SecurityError(ArenaError):
 
 def resolve(cfg: ArenaConfig, template: str, host: str) -> str:
     """A ``[security]`` file path for ``host``: ``{host}`` replaced, relative to the config file's folder."""
-    if not template:
-        return ""
-    p = Path(template.replace("{host}", host)).expanduser()
-    if not p.is_absolute() and cfg.path != "<config>":
-        p = Path(cfg.path).resolve().parent / p
-    return str(p)
+    return str(cfg.file(template.replace("{host}", host))) if template else ""
 
 
 # -- who owns what ----------------------------------------------------------------------------------------

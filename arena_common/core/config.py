@@ -264,6 +264,11 @@ class ArenaConfig(Spec, frozen=True):
     pipeline: PipelineSpec = msgspec.field(default_factory=PipelineSpec)
     clock: ClockSpec = msgspec.field(default_factory=ClockSpec)
 
+    def file(self, name: str) -> Path:
+        """A file the config names: ``~`` expanded, a relative path taken from the config file's folder."""
+        p = Path(name).expanduser()
+        return p if p.is_absolute() or self.path.startswith("<") else Path(self.path).resolve().parent / p
+
     def vehicle(self, name: str) -> VehicleSpec:
         """A vehicle by name; :class:`ConfigError` listing the known names if absent."""
         try:

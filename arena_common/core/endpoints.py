@@ -9,7 +9,7 @@ import ipaddress
 
 from arena_common.core.errors import ConfigError
 
-__all__ = ["endpoint_host", "is_loopback", "mirror_connection", "udp_listen_port"]
+__all__ = ["endpoint_host", "is_loopback", "mirror_connection", "split_endpoint", "udp_listen_port"]
 
 
 def mirror_connection(conn: str) -> str:
@@ -23,9 +23,8 @@ def mirror_connection(conn: str) -> str:
 
 def udp_listen_port(conn: str) -> int | None:
     """The local UDP port a gateway binds for ``udpin:HOST:PORT`` (or ``udp:…``); None for other links."""
-    scheme, _, rest = conn.partition(":")
-    port = rest.rpartition(":")[2]
-    return int(port) if scheme in ("udpin", "udp") and port.isdigit() else None
+    scheme, _, port = split_endpoint(conn)
+    return port if scheme in ("udpin", "udp") else None
 
 
 def is_loopback(address: str) -> bool:
@@ -39,8 +38,15 @@ def is_loopback(address: str) -> bool:
         return False
 
 
+def split_endpoint(endpoint: str) -> tuple[str, str, int | None]:
+    """``(protocol, host, port)`` of a Zenoh endpoint (``tcp/HOST:PORT#…``) or of a connection string
+    (``udpin:HOST:PORT``); the port is None when there is none (or it is no number)."""
+    sep = "/" if "/" in endpoint.split(":", 1)[0] else ":"
+    proto, _, rest = endpoint.partition(sep)
+    host, _, port = rest.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    return proto, host.strip("[]"), int(port) if port.isdigit() else None
+
+
 def endpoint_host(endpoint: str) -> str:
     """The host part of a Zenoh endpoint (``tcp/HOST:PORT#…``) or of ``udpin:HOST:PORT``."""
-    rest = endpoint.partition("/")[2] if "/" in endpoint.split(":", 1)[0] else endpoint.partition(":")[2]
-    rest = rest.split("#", 1)[0].split("?", 1)[0]
-    return rest.rpartition(":")[0].strip("[]")
+    return split_endpoint(endpoint)[1]

@@ -107,9 +107,6 @@ class Op:
         """The :class:`~arena_common.client.aio.AsyncVehicle` method that sends it ("": none)."""
         return self.aio or self.client
 
-    def arg(self, name: str) -> Arg:
-        return next(a for a in self.args if a.name == name)
-
 
 _VEHICLE: tuple[Op, ...] = (
     Op(

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping
-from typing import Any, ClassVar
+from typing import Any
 
 from arena_common.core import ops, wire
 from arena_common.core.config import ArenaSpec, VehicleSpec
@@ -56,23 +56,8 @@ def _refused(reason: str) -> wire.CommandResult:
 class CommandExecutor:
     """Answers the commands of one vehicle (see the module's table); :meth:`handle` serves the queryable."""
 
-    #: The method answering each vehicle operation of :data:`arena_common.core.ops.OPS`.
-    HANDLERS: ClassVar[dict[str, str]] = {
-        "arm": "_arm",
-        "disarm": "_disarm",
-        "kill": "_kill",
-        "takeoff": "_takeoff",
-        "land": "_land",
-        "hold": "_hold",
-        "mode": "_mode",
-        "goto": "_goto",
-        "reboot": "_reboot",
-        "param_get": "_param_get",
-        "param_set": "_param_set",
-        "check": "_check",
-        "setup": "_setup",
-        "ping": "_ping",
-    }
+    #: Each vehicle operation of :data:`arena_common.core.ops.OPS` is answered by the method named
+    #: ``_<op>`` (``_arm``, ``_goto``…).
 
     def __init__(
         self,
@@ -107,7 +92,7 @@ class CommandExecutor:
         self.goto_tolerance = goto_tolerance
         self.clock_problem = clock_problem
         self._ops: dict[str, Callable[[Mapping[str, Any], float], wire.CommandResult]] = {
-            op: getattr(self, method) for op, method in self.HANDLERS.items()
+            op.name: getattr(self, f"_{op.name}") for op in ops.vehicle_ops()
         }
 
     # -- entry ---------------------------------------------------------------------------------------

@@ -207,13 +207,7 @@ def write_px4_secret(path: str | Path, key: SigningKey, timestamp: int | None = 
 def key_path(cfg: ArenaConfig, vehicle: str) -> Path | None:
     """The vehicle's key file (relative paths from the config file's directory), None without signing."""
     name = cfg.vehicle(vehicle).signing_key_file
-    if not name:
-        return None
-    p = Path(name).expanduser()
-    if not p.is_absolute():
-        base = Path(cfg.path).parent if cfg.path and not cfg.path.startswith("<") else Path.cwd()
-        p = base / p
-    return p
+    return cfg.file(name) if name else None
 
 
 def vehicle_key(cfg: ArenaConfig, vehicle: str) -> SigningKey | None:

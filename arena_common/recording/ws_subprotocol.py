@@ -25,6 +25,19 @@ _HEADER = re.compile(rb"^sec-websocket-protocol[ \t]*:(.*)$", re.IGNORECASE | re
 log = logging.getLogger("arena_common.recording")
 
 
+def _read_head(sock: socket.socket) -> tuple[bytes, tuple[bytes, bytes] | None]:
+    """What ``sock`` sends until an HTTP head is complete (at most :data:`MAX_HEAD` bytes), and the head
+    split from what follows it (None: no complete head within the limit)."""
+    data, split = b"", None
+    while split is None and len(data) < MAX_HEAD:
+        chunk = sock.recv(4096)
+        if not chunk:
+            raise OSError("closed during the handshake")
+        data += chunk
+        split = _split_head(data)
+    return data, split
+
+
 def _split_head(data: bytes) -> tuple[bytes, bytes] | None:
     end = data.find(b"\r\n\r\n")
     return None if end < 0 else (data[: end + 4], data[end + 4 :])
@@ -98,13 +111,7 @@ class SubprotocolBridge:
 
     def _handshake(self, client: socket.socket, server: socket.socket) -> bool:
         """Pass the request on (rewritten when needed), then the answer; True for an old-name client."""
-        data, split = b"", None
-        while split is None and len(data) < MAX_HEAD:
-            chunk = client.recv(4096)
-            if not chunk:
-                raise OSError("closed during the handshake")
-            data += chunk
-            split = _split_head(data)
+        data, split = _read_head(client)
         if split is None:
             server.sendall(data)
             return False
@@ -112,13 +119,7 @@ class SubprotocolBridge:
         server.sendall(head + split[1])
         if not legacy:
             return False
-        data, split = b"", None
-        while split is None and len(data) < MAX_HEAD:
-            chunk = server.recv(4096)
-            if not chunk:
-                raise OSError("closed during the handshake")
-            data += chunk
-            split = _split_head(data)
+        data, split = _read_head(server)
         client.sendall(data if split is None else rewrite_response(split[0]) + split[1])
         return True
 

@@ -12,7 +12,7 @@ import socket
 from dataclasses import dataclass
 
 from arena_common.core.config import ArenaConfig
-from arena_common.core.endpoints import endpoint_host, udp_listen_port
+from arena_common.core.endpoints import endpoint_host, split_endpoint, udp_listen_port
 
 __all__ = ["FixedPort", "fixed_ports", "taken_ports"]
 
@@ -31,14 +31,10 @@ class FixedPort:
 
 
 def _zenoh(field: str, endpoint: str) -> FixedPort | None:
-    proto, sep, rest = endpoint.partition("/")
-    if not sep or proto not in ("tcp", "tls", "udp", "quic", "ws"):
+    proto, host, port = split_endpoint(endpoint)
+    if "/" not in endpoint or proto not in ("tcp", "tls", "udp", "quic", "ws") or not port:
         return None
-    port = rest.split("#", 1)[0].split("?", 1)[0].rpartition(":")[2]
-    if not port.isdigit() or int(port) == 0:
-        return None
-    kind = "udp" if proto in ("udp", "quic") else "tcp"
-    return FixedPort(field, kind, endpoint_host(endpoint) or "0.0.0.0", int(port))
+    return FixedPort(field, "udp" if proto in ("udp", "quic") else "tcp", host or "0.0.0.0", port)
 
 
 def fixed_ports(cfg: ArenaConfig, host: str) -> list[FixedPort]:
@@ -57,7 +53,7 @@ def fixed_ports(cfg: ArenaConfig, host: str) -> list[FixedPort]:
             v = cfg.vehicle(name)
             port = udp_listen_port(v.mavlink)
             if port:
-                address = v.mavlink.partition(":")[2].rpartition(":")[0] or "0.0.0.0"
+                address = endpoint_host(v.mavlink) or "0.0.0.0"
                 found.append(FixedPort(f"vehicles.{name}.mavlink", "udp", address, port))
     return found
 

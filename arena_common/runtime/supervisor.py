@@ -40,6 +40,7 @@ from typing import Any, Protocol
 
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig, HostSpec
+from arena_common.core.endpoints import split_endpoint
 from arena_common.core.errors import ArenaError
 from arena_common.runtime.process import ChildProcess, StopSignals, describe_exit
 
@@ -142,19 +143,10 @@ def endpoint_address(endpoint: str) -> tuple[str, int] | None:
 
     ``None`` for endpoints that cannot be probed with a TCP connect (UDP, Unix sockets, port 0).
     """
-    proto, sep, rest = endpoint.partition("/")
-    if not sep or proto not in ("tcp", "tls", "ws"):
+    proto, host, port = split_endpoint(endpoint)
+    if "/" not in endpoint or proto not in ("tcp", "tls", "ws") or not port:
         return None
-    rest = rest.split("#", 1)[0].split("?", 1)[0]
-    host, sep, port_s = rest.rpartition(":")
-    if not sep or not port_s.isdigit() or int(port_s) == 0:
-        return None
-    host = host.strip("[]")
-    if host in ("0.0.0.0", ""):
-        host = "127.0.0.1"
-    elif host == "::":
-        host = "::1"
-    return host, int(port_s)
+    return {"0.0.0.0": "127.0.0.1", "": "127.0.0.1", "::": "::1"}.get(host, host), port
 
 
 def host_options(cfg: ArenaConfig, host: HostSpec, options: BusOptions | None = None) -> BusOptions | None:

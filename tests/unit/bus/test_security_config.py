@@ -116,11 +116,13 @@ def test_the_shipped_lab_recipe_is_locked_down() -> None:
 
 def test_the_lab_ca_certificates_and_what_check_finds(tmp_path: Path) -> None:
     d = tmp_path / "secrets"
-    files = pki.init_lab(d, "lab", {"ground": "192.168.1.20", "cc1": ""})
+    certificates = pki.init_lab(d, "lab", {"ground": "192.168.1.20", "cc1": ""})
     assert oct(d.stat().st_mode & 0o777) == "0o700"
     assert oct((d / "ca.key").stat().st_mode & 0o777) == "0o600"
     assert oct((d / "cc1.key").stat().st_mode & 0o777) == "0o600"
-    assert pki.check_lab(files.ca, files.certificates) == []
+    assert [
+        p for n, (pem, key) in certificates.items() for p in pki.check_certificate(d / "ca.pem", pem, key, n)
+    ] == []
     with pytest.raises(pki.PkiError, match="a lab CA is already there"):
         pki.init_lab(d, "lab", {"ground": ""})
     # A certificate of another CA, or under another name, or a key others may read: each named.
