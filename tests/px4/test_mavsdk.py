@@ -275,6 +275,12 @@ class Script:
     def in_air(self) -> bool:
         return bool(self.telemetry().in_air())
 
+    def settled(self) -> bool:
+        """Nearly at rest: the true position moved less than 5 cm in 0.25 s (under 0.2 m/s)."""
+        a = self.truth()
+        time.sleep(0.25)
+        return math.dist(a, self.truth()) < 0.05
+
     def near(self, north: float, east: float, height: float, tol: float = 0.3) -> bool:
         p = self.truth()
         return math.dist((p[0], p[1], -p[2]), (north, east, height)) < tol
@@ -481,6 +487,9 @@ class Script:
             )
             check("offboard.stop", offboard.stop)
             check("hold after offboard.stop", lambda: wait(lambda: self.mode().name == "HOLD", 5, "HOLD"))
+            # Hold first brakes to its braking point (PX4: v·(v/2a + 0.6 s), ≈ 0.3 m from 0.45 m/s; the
+            # simulated autopilot does the same): "stays put" is judged once that stop is over.
+            check("hold brakes to a stop", lambda: wait(self.settled, 10, "at rest in HOLD"))
             p0 = self.truth()
             time.sleep(2.0)
             check("hold stays put", lambda: math.dist(p0, self.truth()) < 0.3)
