@@ -179,6 +179,14 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
             )
         except (OSError, ValueError, MavlinkLinkError) as exc:
             raise SimAutopilotError(f"cannot open MAVLink connection {connection!r}: {exc}") from exc
+        port = getattr(self.conn, "port", None)
+        if connection.startswith("udpout:") and port is not None:
+            # Like PX4 on its link, the vehicle reads whoever sends to its port, but only on the address
+            # that faces its gateway (loopback for a gateway on this computer), never on every interface:
+            # the serial line or radio it stands for is not on the lab's network.
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+                probe.connect(self.conn.destination_addr)
+                port.bind((probe.getsockname()[0], 0))
         if not type(self.conn.mav).__module__.startswith("pymavlink.dialects.v20."):
             self.conn.close()
             raise SimAutopilotError("pymavlink was loaded for MAVLink 1; import this module before pymavlink")

@@ -4,7 +4,7 @@ Namespaces this test creates (10.215.9.0/24) stand for the lab's computers of ``
 ``ground`` (router, mocap ingest, frame transform, recorder; here also the Motive emulator and the
 simulated autopilots, standing where the cameras and vehicles would be), ``cc1`` and ``cc2`` (a companion
 computer each, with its vehicle's gateway) and ``outsider``.  The config is the shipped example with only
-what a namespace lab needs substituted (addresses, simulated autopilots on signed UDP links instead of
+what a namespace lab needs substituted (addresses, simulated autopilots on UDP links instead of
 serial lines, a temporary recordings folder), in both credential kinds: mutual TLS as shipped, and
 user/password.  Every step is typed as the README gives it: ``arena security init``, ``arena security
 check``, ``arena config check``, ``arena up lab.toml --host NAME`` on each computer, ``arena status``.
@@ -65,7 +65,6 @@ sim = {{ start = [1.0, 0.0] }}
 rigid_body = 3
 mavlink = "udpin:127.0.0.1:14543"
 system_id = 13
-signing_key_file = "keys/c3.key"
 vision_rate = 30.0
 state_rate = 20.0
 telemetry_rate = 2.0
@@ -213,7 +212,7 @@ def test_lab_steps_then_the_outsider_cannot_command_spoof_or_divert(
     cfg = tmp_path / "lab.toml"
     cfg.write_text(lab_config(kind, tmp_path))
     (tmp_path / "keys").mkdir()
-    for v in ("c1", "c2", "c3"):  # the simulated autopilots' own ports are on the network too: signed
+    for v in ("c1", "c2"):  # their links cross the network: signed (c3's stays on the ground's loopback)
         generate_key_file(tmp_path / "keys" / f"{v}.key")
     # The README's lab steps, as typed on the ground computer (the credentials are copied to each host:
     # here the namespaces share this folder).
@@ -270,7 +269,12 @@ def test_lab_steps_then_the_outsider_cannot_command_spoof_or_divert(
             target = (ADDRESS[host] if address in ("0.0.0.0", "*", "::") else address, port)
             (tcp if proto == "tcp" else udp).append(target)
     assert tcp == [(ADDRESS["ground"], 7447)], f"TCP listeners beyond loopback: {tcp}"
+    # UDP: the gateways' links of c1 and c2, and the simulated autopilots of c1 and c2 on the ground's
+    # address that faces them; c3's link (unsigned) stays on the ground's loopback, out of the outsider's reach.
     assert (ADDRESS["cc1"], 14541) in udp and (ADDRESS["cc2"], 14542) in udp, udp
+    assert sorted(address for address, _ in udp) == sorted(
+        [ADDRESS["ground"]] * 2 + [ADDRESS["cc1"], ADDRESS["cc2"]]
+    ), udp
 
     spec: dict[str, Any] = {
         "vehicles": SYSIDS,

@@ -645,6 +645,16 @@ def test_tcp_link(make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]]) -> None
     ap.close()
 
 
+def test_udp_link_listens_only_on_the_address_facing_its_gateway(
+    make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]],
+) -> None:
+    """A simulated vehicle stands for a serial line or radio: its UDP port is not on every interface."""
+    ap, gcs = make_vehicle()
+    local = ap.conn.port.getsockname()  # type: ignore[attr-defined]
+    assert local[0] == "127.0.0.1" and local[1] != 0
+    gcs.wait_for(lambda: gcs.heartbeat is not None, 2.0, "heartbeat")
+
+
 def test_several_vehicles_one_loop_and_low_cpu() -> None:
     """Five vehicles in one thread at real time, flying and streaming: CPU stays far below one core."""
     clock = SimClock(speed=1.0)
