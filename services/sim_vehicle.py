@@ -52,11 +52,12 @@ def select_vehicles(cfg: ArenaConfig, names: Sequence[str] = ()) -> list[str]:
 
 
 def build_autopilots(
-    cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = (), *, estimate_lag: float = 0.0
+    cfg: ArenaConfig, clock: SimClock, names: Sequence[str] = (), *, estimate_lag: float | None = None
 ) -> list[SimAutopilot]:
     """One simulated autopilot per selected vehicle, sharing ``clock``; closes them all on failure.
 
-    ``estimate_lag`` (s): time constant of the first-order lag of each vehicle's estimate (0: none).
+    They fly as ``sim.fidelity`` says; ``estimate_lag`` (s), when given, is the time constant of the
+    first-order lag of each vehicle's estimate (0: none) instead of that fidelity's.
     """
     built: list[SimAutopilot] = []
     # "arena": as a lab's vehicle after `arena px4 setup`; "px4": a fresh PX4 with its defaults.
@@ -79,6 +80,7 @@ def build_autopilots(
                     params=preset,
                     signing_key=vehicle_key(cfg, name),
                     estimate_lag=estimate_lag,
+                    ideal=cfg.sim.fidelity == "ideal",
                 )
             )
     except BaseException:
@@ -126,19 +128,20 @@ def main(
     vehicles: Sequence[str] = (),
     speed: float | None = None,
     truth_rate: float = PHYSICS_RATE,
-    estimate_lag: float = 0.0,
+    estimate_lag: float | None = None,
     host: str | None = None,
     stop: threading.Event | None = None,
 ) -> None:
     """Run the simulated vehicles until ``stop`` is set (or SIGINT/SIGTERM in the main thread).
 
     ``speed`` overrides ``sim.speed``; ``truth_rate`` (Hz of simulated time) limits how often each
-    true pose is published (at most once per physics tick); ``estimate_lag`` (s, 0..5) lags each
-    vehicle's estimate behind its filter (PX4's trails the truth a little, see docs/px4.md).
+    true pose is published (at most once per physics tick); ``estimate_lag`` (s, 0..5), when given,
+    replaces the time constant of the lag of each vehicle's estimate behind its filter (``sim.fidelity``
+    "px4": PX4's, docs/px4.md; "ideal": none).
     """
     if not truth_rate > 0:
         raise ConfigError(f"truth rate must be positive, got {truth_rate}")
-    if not (math.isfinite(estimate_lag) and 0.0 <= estimate_lag <= 5.0):
+    if estimate_lag is not None and not (math.isfinite(estimate_lag) and 0.0 <= estimate_lag <= 5.0):
         raise ConfigError(f"estimate lag must be within 0..5 s, got {estimate_lag}")
     names = select_vehicles(cfg, vehicles)  # fail on an unknown name before opening anything
     clock = SimClock(cfg.sim.speed if speed is None else speed)
@@ -179,11 +182,12 @@ def cli(
         float, typer.Option("--truth-rate", help="True poses published per simulated second, per vehicle.")
     ] = PHYSICS_RATE,
     estimate_lag: Annotated[
-        float,
+        float | None,
         typer.Option(
-            "--estimate-lag", help="Time constant (s) of a first-order lag of each estimate (0: none)."
+            "--estimate-lag",
+            help="Time constant (s) of a first-order lag of each estimate (0: none; default: sim.fidelity's).",
         ),
-    ] = 0.0,
+    ] = None,
 ) -> None:
     """Simulated PX4 vehicles speaking MAVLink 2, with their true poses on arena/<name>/truth."""
     try:

@@ -182,6 +182,9 @@ class SimSpec(Spec, frozen=True):
     px4_params: Literal["arena", "px4"] = (
         "arena"  # "arena": vehicles set up for the arena; "px4": PX4's defaults
     )
+    # "px4": simulated vehicles take off, hold and wander as PX4 v1.16 SITL was measured to (docs/px4.md);
+    # "ideal": they climb at once, hold exactly and estimate their pose without error.
+    fidelity: Literal["px4", "ideal"] = "px4"
 
 
 class RecorderSpec(Spec, frozen=True):

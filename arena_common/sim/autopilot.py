@@ -36,7 +36,8 @@ Simulation choices where PX4 was not copied (documented here once):
   and reported by a STATUSTEXT at most every 5 s.  The streams seen are forgotten on a reboot.
 - SET_GPS_GLOBAL_ORIGIN addressed to the vehicle sets its EKF origin (:attr:`SimAutopilot.gps_origin`,
   lost on reboot); every SET_GPS_GLOBAL_ORIGIN is answered with GPS_GLOBAL_ORIGIN once an origin is set.
-- ``estimate_lag`` (s) passes the estimate the controllers and telemetry see through a first-order lag.
+- The estimate the controllers and telemetry see trails the truth and wanders about it as PX4's did on
+  SIH (``ideal`` makes it exact; ``estimate_lag`` sets the lag's time constant).
 """
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ from arena_common.mavlink.px4 import ParamValue
 from arena_common.mavlink.signing import PX4_UNSIGNED, LinkSigning, SigningKey
 from arena_common.mavlink.transports import MavlinkLinkError, parse_serial
 from arena_common.sim.base import MapProjection, SimAutopilotError, TruePose, Vec3
+from arena_common.sim.estimator import PX4_SIH_ESTIMATE_LAG_S, PX4_SIH_WANDER
 from arena_common.sim.flight import FlightMixin
 from arena_common.sim.mavlink_commands import CommandsMixin
 from arena_common.sim.mission import MissionMixin
@@ -99,11 +101,13 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
     ``udpout:127.0.0.1:PORT`` (gateway on ``udpin:127.0.0.1:PORT``) or ``tcpin:127.0.0.1:PORT``
     (gateway on ``tcp:``). ``params`` overrides PX4's defaults as if stored on the vehicle (in effect from
     boot). The vehicle starts disarmed on the floor at ``position`` (arena NED, down = 0) heading ``yaw``
-    rad. ``estimate_lag`` (s, ≥ 0) is the time constant of the lag of its estimate behind its filter.
-    By default the takeoff and Hold behave as PX4 v1.16 SITL was measured to (docs/px4.md: spool-up and
-    thrust ramp on the ground, Hold reported NAV_MC_ALT_RAD short of the altitude and a slow approach
-    after it; Hold entered while moving stops at PX4's braking point); ``ideal`` climbs at once and
-    holds where the mode began.
+    rad. By default it flies as PX4 v1.16 SITL (SIH) was measured to (docs/px4.md): spool-up and thrust
+    ramp on the ground, Hold reported NAV_MC_ALT_RAD short of the altitude and a slow approach after it,
+    Hold entered while moving stops at PX4's braking point, and its estimate trails the truth
+    (:data:`~arena_common.sim.estimator.PX4_SIH_ESTIMATE_LAG_S`) and wanders about it
+    (:data:`~arena_common.sim.estimator.PX4_SIH_WANDER`), so the vehicle wanders around its hover point
+    as PX4's did.  ``ideal`` climbs at once, holds where the mode began and estimates exactly.
+    ``estimate_lag`` (s, 0..5), when given, replaces the time constant of the estimate's lag.
     """
 
     COMPONENT_ID = px4.MAV_COMP_ID_AUTOPILOT1
@@ -127,13 +131,15 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
         soc: float = 1.0,
         seed: int = 0,
         signing_key: SigningKey | None = None,
-        estimate_lag: float = 0.0,
+        estimate_lag: float | None = None,
         ideal: bool = False,
     ) -> None:
         if not 1 <= int(system_id) <= 250:
             raise SimAutopilotError(f"system id must be within 1..250, got {system_id}")
         if len(position) != 3 or position[2] < 0:
             raise SimAutopilotError(f"start position must be (north, east, down>=0), got {tuple(position)}")
+        if estimate_lag is None:
+            estimate_lag = 0.0 if ideal else PX4_SIH_ESTIMATE_LAG_S
         if not (math.isfinite(estimate_lag) and 0.0 <= estimate_lag <= 5.0):
             raise SimAutopilotError(f"estimate lag must be within 0..5 s, got {estimate_lag}")
         self.clock = clock or SimClock()
@@ -158,6 +164,7 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
             quad, self._base_gains, battery=battery, position=self._start, yaw=yaw, soc=soc, seed=seed
         )
         self.sim.estimator.output_lag_s = float(estimate_lag)
+        self.sim.estimator.wander = None if ideal else PX4_SIH_WANDER
         self.ideal = bool(ideal)
         self.timesync = TimesyncFilter()
         self.statustexts: deque[tuple[int, str]] = deque(maxlen=200)

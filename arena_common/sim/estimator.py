@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import random
 from collections import deque
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from arena_common.geometry.quat import (
@@ -24,7 +25,16 @@ from arena_common.sim.base import clamp
 if TYPE_CHECKING:
     from arena_common.sim.physics import RigidBody
 
-__all__ = ["EV_CTRL_HPOS", "EV_CTRL_VEL", "EV_CTRL_VPOS", "EV_CTRL_YAW", "Estimator"]
+__all__ = [
+    "EV_CTRL_HPOS",
+    "EV_CTRL_VEL",
+    "EV_CTRL_VPOS",
+    "EV_CTRL_YAW",
+    "PX4_SIH_ESTIMATE_LAG_S",
+    "PX4_SIH_WANDER",
+    "Estimator",
+    "Wander",
+]
 
 NAN = math.nan
 _clamp = clamp
@@ -34,6 +44,33 @@ EV_CTRL_HPOS = 1
 EV_CTRL_VPOS = 2
 EV_CTRL_VEL = 4
 EV_CTRL_YAW = 8
+
+
+@dataclass(frozen=True, slots=True)
+class Wander:
+    """How an estimate strays from the truth in flight: a random velocity error and the position error it makes.
+
+    The velocity error along each axis of the heading (forward, right, down) is a first-order random
+    process (Ornstein-Uhlenbeck) of rms ``velocity_rms`` and correlation time ``velocity_tau_s``; the
+    position error integrates it and is pulled back to the fused measurements with time constant
+    ``position_tau_s``.  The controllers act on the estimate: the vehicle's velocity loop follows a wrong
+    velocity and its position loop pulls it back, so it wanders around its setpoint by about the velocity
+    error over the position gain (MPC_XY_P).
+    """
+
+    velocity_rms: Vec3 = (0.0, 0.0, 0.0)  # m/s: forward, right, down
+    velocity_tau_s: float = 0.7
+    position_tau_s: float = 0.5
+
+
+#: PX4 v1.16 SITL (SIH) as its ULog measured it in hover, vision fed by the arena (docs/px4.md, "Issue 25"):
+#: velocity estimate off the truth by 0.03 / 0.10-0.13 / 0.06 m/s rms (north / east / down, heading north:
+#: the roll axis wanders, as PX4's roll estimate does), correlated over 0.6-0.8 s; position estimate 3-6 cm
+#: rms off; the estimate trailing the truth by 125-195 ms in flight; the vehicle wandering 10-19 cm (p50) and
+#: 24-41 cm (max) around its hover point.  These constants reproduce that with the simulation's controllers
+#: (tests/unit/sim/test_sim_px4_parity.py): the size of PX4/SIH's wander, not its cause inside PX4.
+PX4_SIH_ESTIMATE_LAG_S = 0.1
+PX4_SIH_WANDER = Wander(velocity_rms=(0.035, 0.15, 0.06), velocity_tau_s=0.7, position_tau_s=0.5)
 
 
 class Estimator:
@@ -53,7 +90,8 @@ class Estimator:
     steers the heading but never aligns it, as in PX4 v1.16, so there is no global position.
 
     ``output_lag_s`` > 0 passes position and velocity through a first-order lag before anyone uses
-    them (:attr:`out_position`, :attr:`out_velocity`: the controllers and the telemetry).
+    them (:attr:`out_position`, :attr:`out_velocity`: the controllers and the telemetry); ``wander`` (a
+    :class:`Wander`) adds a random error to them in flight.  Both are off by default (an exact estimate).
     """
 
     HISTORY_S = 0.6
@@ -71,6 +109,7 @@ class Estimator:
         self.hgt_ref_vision = False
         self.noaid_timeout_s = 5.0  # EKF2_NOAID_TOUT
         self.output_lag_s = 0.0
+        self.wander: Wander | None = None
         # Small constant sensor errors, different for each vehicle (seeded).
         self.accel_bias = (rng.uniform(-0.04, 0.04), rng.uniform(-0.04, 0.04), rng.uniform(-0.06, 0.06))
         self.gyro_z_bias = rng.uniform(-0.004, 0.004)
@@ -103,6 +142,9 @@ class Estimator:
         self.last_sample_time = NAN
         self.out_position = position
         self.out_velocity = (0.0, 0.0, 0.0)
+        self._lagged = (position, (0.0, 0.0, 0.0))
+        self._wander_v = [0.0, 0.0, 0.0]
+        self._wander_p = [0.0, 0.0, 0.0]
 
     # --- validity flags (PX4 vehicle_local_position.*_valid) ---
     @property
@@ -167,28 +209,40 @@ class Estimator:
         self.history.append((t, self.position, self.velocity, self.yaw))
         while self.history and self.history[0][0] < t - self.HISTORY_S:
             self.history.popleft()
-        self._update_output(dt)
+        self._update_output(dt, body.on_ground)
 
-    def _update_output(self, dt: float) -> None:
-        """First-order lag (time constant :attr:`output_lag_s`) from the state to what is handed on."""
+    def _update_output(self, dt: float, on_ground: bool = False) -> None:
+        """What is handed on: the state through a first-order lag (:attr:`output_lag_s`), plus the wander."""
         tau = self.output_lag_s
         if not tau > 0.0:
-            self.out_position = self.position
-            self.out_velocity = self.velocity
-            return
-        k = dt / (tau + dt)
-        op, p = self.out_position, self.position
-        ov, v = self.out_velocity, self.velocity
-        self.out_position = (
-            op[0] + k * (p[0] - op[0]),
-            op[1] + k * (p[1] - op[1]),
-            op[2] + k * (p[2] - op[2]),
-        )
-        self.out_velocity = (
-            ov[0] + k * (v[0] - ov[0]),
-            ov[1] + k * (v[1] - ov[1]),
-            ov[2] + k * (v[2] - ov[2]),
-        )
+            op, ov = self.position, self.velocity
+        else:
+            k = dt / (tau + dt)
+            (lp, lv), p, v = self._lagged, self.position, self.velocity
+            op = (lp[0] + k * (p[0] - lp[0]), lp[1] + k * (p[1] - lp[1]), lp[2] + k * (p[2] - lp[2]))
+            ov = (lv[0] + k * (v[0] - lv[0]), lv[1] + k * (v[1] - lv[1]), lv[2] + k * (v[2] - lv[2]))
+            self._lagged = (op, ov)
+        wander = self.wander
+        if wander is not None:
+            ev, ep = self._wander_v, self._wander_p
+            decay = math.exp(-dt / wander.velocity_tau_s)
+            spread = math.sqrt(1.0 - decay * decay)
+            pull = dt / wander.position_tau_s
+            if on_ground:  # at rest the EKF knows the velocity is zero: the error dies away
+                ev[0], ev[1], ev[2] = ev[0] * decay, ev[1] * decay, ev[2] * decay
+            else:  # the error is drawn along the heading's axes (forward, right, down), kept in NED
+                gauss, rms = self.rng.gauss, wander.velocity_rms
+                fwd, right = spread * rms[0] * gauss(0.0, 1.0), spread * rms[1] * gauss(0.0, 1.0)
+                c, s = math.cos(self.yaw), math.sin(self.yaw)
+                ev[0] = decay * ev[0] + c * fwd - s * right
+                ev[1] = decay * ev[1] + s * fwd + c * right
+                ev[2] = decay * ev[2] + spread * rms[2] * gauss(0.0, 1.0)
+            for i in range(3):
+                ep[i] += (ev[i] - ep[i] / wander.position_tau_s) * dt if pull < 1.0 else -ep[i]
+            op = (op[0] + ep[0], op[1] + ep[1], op[2] + ep[2])
+            ov = (ov[0] + ev[0], ov[1] + ev[1], ov[2] + ev[2])
+        self.out_position = op
+        self.out_velocity = ov
 
     def fuse_baro(self, dt: float, true_down: float) -> None:
         """Barometric height: learns its offset while vision height is fused, replaces it otherwise."""
@@ -312,8 +366,11 @@ class Estimator:
             vz += kv2 * (velocity[2] - v_past[2])
         if reset:
             # A reset moves what is handed on at once too (PX4 resets its output predictor).
-            op, old = self.out_position, self.position
-            self.out_position = (op[0] + px - old[0], op[1] + py - old[1], op[2] + pz - old[2])
+            old = self.position
+            shift = (px - old[0], py - old[1], pz - old[2])
+            op, (lp, lv) = self.out_position, self._lagged
+            self.out_position = (op[0] + shift[0], op[1] + shift[1], op[2] + shift[2])
+            self._lagged = ((lp[0] + shift[0], lp[1] + shift[1], lp[2] + shift[2]), lv)
         self.position = (px, py, pz)
         self.velocity = (vx, vy, vz)
         fused = bool(use_yaw or (position is not None and ctrl & (EV_CTRL_HPOS | EV_CTRL_VPOS)))

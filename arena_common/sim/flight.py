@@ -399,10 +399,20 @@ class FlightMixin(AutopilotState):
             nav["braked"] = True
             return Setpoint.hold(nav["hold"], nav["yaw"])
         un, ue = vn / speed, ve / speed
-        hold = nav["hold"]
         return Setpoint(
-            position=(p0[0] + un * s, p0[1] + ue * s, hold[2]), velocity=(un * v, ue * v, 0.0), yaw=nav["yaw"]
+            position=(p0[0] + un * s, p0[1] + ue * s, self._hold_height(t, nav)),
+            velocity=(un * v, ue * v, 0.0),
+            yaw=nav["yaw"],
         )
+
+    @staticmethod
+    def _hold_height(t: float, nav: dict[str, Any]) -> float:
+        """Hold's height: after a takeoff approached exponentially, as PX4's (docs/px4.md), else the hold's."""
+        hold = nav["hold"]
+        if "approach" not in nav:
+            return float(hold[2])
+        t0, dz = nav["approach"]
+        return float(hold[2] + dz * math.exp(-(t - t0) / TAKEOFF_APPROACH_TAU))
 
     def _enter_nav(self) -> None:
         """Initialise the behaviour of the current (reported) mode from the present estimate."""
@@ -499,13 +509,9 @@ class FlightMixin(AutopilotState):
                 sim.setpoint = self._carrot(goal, nav.get("goto_yaw", nav["yaw"]))
             elif "brake" in nav and not nav.get("braked"):
                 sim.setpoint = self._brake_setpoint(t, nav)
-            elif "approach" in nav:  # after a takeoff: the altitude approached exponentially
-                t0, dz = nav["approach"]
-                hold = nav["hold"]
-                z = hold[2] + dz * math.exp(-(t - t0) / TAKEOFF_APPROACH_TAU)
-                sim.setpoint = Setpoint.hold((hold[0], hold[1], z), nav["yaw"])
             else:
-                sim.setpoint = Setpoint.hold(nav["hold"], nav["yaw"])
+                hold = nav["hold"]
+                sim.setpoint = Setpoint.hold((hold[0], hold[1], self._hold_height(t, nav)), nav["yaw"])
 
     # ------------------------------------------------------------------ arming
 

@@ -35,7 +35,12 @@ ARENA_PARAMS: dict[str, Any] = {name: value for name, (value, _) in px4.ARENA_RE
 
 
 class Rig:
-    """Simulated vehicles, their gateways, a vision feeder and a client bus."""
+    """Simulated vehicles, their gateways, a vision feeder and a client bus.
+
+    The vehicles are ``ideal`` by default: these tests judge the gateway's and the client's logic with
+    bounds an exact vehicle meets; the wander PX4 shows (the simulation's default) is judged in
+    tests/unit/sim/test_sim_px4_parity.py, and PX4 itself in tests/px4.
+    """
 
     def __init__(
         self,
@@ -45,6 +50,7 @@ class Rig:
         speed: float = SPEED,
         params: dict[str, Any] | None = None,
         simulate: bool = True,
+        ideal: bool = True,
     ) -> None:
         self.cfg = cfg
         self.bus = bus
@@ -59,6 +65,7 @@ class Rig:
                 name=name,
                 position=(north, east, 0.0),
                 params=params,
+                ideal=ideal,
             )
         self.loop = AutopilotLoop(self.aps.values()).start() if self.aps else None
         self.feeding = dict.fromkeys(self.aps, True)

@@ -399,7 +399,8 @@ def test_mocap_estimator_type_is_not_fused(make_vehicle: Callable[..., tuple[Sim
 
 
 def test_offboard_flight_climb_hold_land(make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]]) -> None:
-    ap, gcs = make_vehicle()
+    """The control cascade itself, with an exact estimate (``ideal``; PX4's wander: test_sim_px4_parity)."""
+    ap, gcs = make_vehicle(ideal=True)
     gcs.set_params(ARENA)
     gcs.mocap = True
     gcs.wait_for(lambda: gcs.texts_with("vision fusion started") != [], 2.0, "vision fusion")
@@ -650,7 +651,7 @@ def test_udp_link_listens_only_on_the_address_facing_its_gateway(
 ) -> None:
     """A simulated vehicle stands for a serial line or radio: its UDP port is not on every interface."""
     ap, gcs = make_vehicle()
-    local = ap.conn.port.getsockname()  # type: ignore[attr-defined]
+    local = ap.conn.port.getsockname()
     assert local[0] == "127.0.0.1" and local[1] != 0
     gcs.wait_for(lambda: gcs.heartbeat is not None, 2.0, "heartbeat")
 

@@ -15,12 +15,14 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from arena_common.mavlink import px4
 from arena_common.sim import params as sim_params
 from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimAutopilotError, SimClock
 from arena_common.sim.base import MapProjection
+from arena_common.sim.estimator import PX4_SIH_ESTIMATE_LAG_S
 from arena_common.sim.telemetry import CAPABILITIES, FLIGHT_SW_VERSION
 from tests.unit.sim.test_sim_autopilot import (
     ARENA,
@@ -366,7 +368,7 @@ def test_reposition_and_change_speed(vehicle: Maker) -> None:
 
 
 def test_body_frame_velocity_and_global_setpoints(vehicle: Maker) -> None:
-    ap, gcs = vehicle(params=ARENA, yaw=math.pi / 2)  # facing east
+    ap, gcs = vehicle(params=ARENA, yaw=math.pi / 2, ideal=True)  # facing east; the frames, not the wander
     gcs.set_origin()
     gcs.mocap = True
     gcs.setpoint = {"z": -1.0, "yaw": math.pi / 2}
@@ -456,6 +458,12 @@ def test_estimate_lag_option() -> None:
     ap = SimAutopilot(f"udpout:127.0.0.1:{port}", 1, estimate_lag=0.2)
     assert ap.sim.estimator.output_lag_s == 0.2
     ap.close()
+    ap = SimAutopilot(f"udpout:127.0.0.1:{port}", 1)  # PX4's, measured on SIH
+    assert ap.sim.estimator.output_lag_s == PX4_SIH_ESTIMATE_LAG_S > 0 and ap.sim.estimator.wander is not None
+    ap.close()
+    ap = SimAutopilot(f"udpout:127.0.0.1:{port}", 1, ideal=True)
+    assert ap.sim.estimator.output_lag_s == 0.0 and ap.sim.estimator.wander is None
+    ap.close()
     with pytest.raises(SimAutopilotError, match="estimate lag"):
         SimAutopilot(f"udpout:127.0.0.1:{port}", 1, estimate_lag=-1.0)
 
@@ -482,6 +490,49 @@ def test_takeoff_takes_as_long_as_px4s(vehicle: Maker) -> None:
     assert 7.0 <= on_ground + hold + within <= 13.0  # PX4: 9.4-10.8 s
 
 
+def hover_spread(
+    ap: SimAutopilot, gcs: Gcs, windows: int = 3, seconds: float = 10.0
+) -> list[tuple[float, ...]]:
+    """Per window of hover: the truth's distance from its median p50 and max, its north and east std (m)."""
+    out = []
+    for _ in range(windows):
+        samples = []
+        end = gcs.clock.now() + seconds
+        while gcs.clock.now() < end:
+            gcs.pump()
+            samples.append(ap.true_pose().position)
+        arr = np.array(samples)
+        dist = np.linalg.norm(arr - np.median(arr, axis=0), axis=1)
+        out.append((float(np.percentile(dist, 50)), float(dist.max()), *map(float, arr[:, :2].std(axis=0))))
+    return out
+
+
+def test_hover_wanders_as_px4s_and_ideal_holds_still(vehicle: Maker) -> None:
+    """PX4 v1.16 SITL (SIH) fed the arena's vision wandered 10-19 cm (p50) and 24-41 cm (max) around its hover
+    point in 10 s windows, along its roll axis (east, heading north) far more than north, its velocity
+    estimate 0.03 / 0.10-0.13 m/s rms off the truth (docs/px4.md).  The simulation by default reproduces
+    that size; ``ideal`` holds still.  Bounds: the spread of six seeds and windows of the simulation
+    (p50 4.9-24.7 cm, max 12-57 cm), judged on the median window."""
+    ap, gcs = vehicle(params=ARENA)
+    gcs.fly_offboard_to(1.0)
+    gcs.setpoint = {"z": -1.0}
+    gcs.run_for(3.0)
+    spread = hover_spread(ap, gcs)
+    p50, top, north, east = np.median(np.array(spread), axis=0)
+    print(
+        f"hover windows (p50, max, north std, east std; cm): {np.round(np.array(spread) * 100, 1).tolist()}"
+    )
+    assert 0.03 <= p50 <= 0.30 and top <= 0.70, spread
+    assert east > 1.5 * north, spread
+
+    ap, gcs = vehicle(params=ARENA, ideal=True)
+    gcs.fly_offboard_to(1.0)
+    gcs.setpoint = {"z": -1.0}
+    gcs.run_for(3.0)
+    (p50, top, _, _), *_ = hover_spread(ap, gcs, windows=1, seconds=5.0)
+    assert p50 < 0.01 and top < 0.02, (p50, top)
+
+
 def test_hold_from_a_velocity_stops_at_px4s_braking_point(vehicle: Maker) -> None:
     """Leaving offboard for Hold at 0.45 m/s: PX4's navigator holds its braking point, v·(v/(2·3) + 0.6) =
     0.30 m ahead, and stays there (PX4 SITL through the arena coasted 38-47 cm, the switching delay
@@ -501,6 +552,8 @@ def test_hold_from_a_velocity_stops_at_px4s_braking_point(vehicle: Maker) -> Non
     gcs.run_for(4.0)
     end = ap.true_pose().position
     coast = end[0] - start[0]
-    print(f"coasted {coast * 100:.1f} cm from {speed:.2f} m/s")
+    print(f"coasted {coast * 100:.1f} cm from {speed:.2f} m/s; mid {mid[0]:.3f}, end {end[0]:.3f}")
     assert 0.25 <= coast <= 0.55, coast  # the sim: 47 cm (its braking overshoots PX4's point by ~6 cm)
-    assert end[0] >= mid[0] - 0.1  # it stays (before: it flew back 24 cm to where Hold was commanded)
+    # It stays, give or take its wander and the braking overshoot (before: it flew back 24 cm to where Hold
+    # was commanded, which the coast above rules out too).
+    assert end[0] >= mid[0] - 0.15

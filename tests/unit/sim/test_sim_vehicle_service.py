@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 
 from arena_common.bus.session import Bus, Subscription
 from arena_common.core import keys, wire
-from arena_common.core.config import ArenaConfig
+from arena_common.core.config import ArenaConfig, SimSpec
 from arena_common.core.errors import ConfigError
 from arena_common.mavlink import px4
 from arena_common.sim.autopilot import SimAutopilotError, SimClock
@@ -156,7 +156,7 @@ def test_flies_from_truth_over_zenoh(
         assert gcs.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, 1) == px4.MAV_RESULT_ACCEPTED
         gcs.wait_for(lambda: abs(gcs.latest.p[2] + 1.0) < 0.05, 6.0, "truth at 1 m")  # type: ignore[union-attr]
         p = gcs.latest.p  # type: ignore[union-attr]
-        assert math.hypot(p[0] - start[0], p[1] - start[1]) < 0.1
+        assert math.hypot(p[0] - start[0], p[1] - start[1]) < 0.5  # over its start, give or take PX4's wander
     finally:
         gcs.close()
 
@@ -179,6 +179,19 @@ def test_unknown_vehicle_and_bad_options(arena_config: Callable[..., ArenaConfig
         for ap in aps:
             ap.close()
     assert sim_vehicle.select_vehicles(cfg) == ["d1"]
+
+
+def test_fidelity_chooses_px4s_flight_or_the_ideal_one(arena_config: Callable[..., ArenaConfig]) -> None:
+    for fidelity, ideal in (("px4", False), ("ideal", True)):
+        cfg = arena_config(n_vehicles=2, fidelity=fidelity)
+        aps = sim_vehicle.build_autopilots(cfg, SimClock(speed=SPEED))
+        try:
+            assert [ap.ideal for ap in aps] == [ideal, ideal]
+            assert [ap.sim.estimator.wander is None for ap in aps] == [ideal, ideal]
+        finally:
+            for ap in aps:
+                ap.close()
+    assert SimSpec().fidelity == "px4"  # the default
 
 
 def test_cli_reports_bad_input(arena_config: Callable[..., ArenaConfig], tmp_path: Any) -> None:
