@@ -305,6 +305,9 @@ PX4_DEFAULTS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "EKF2_NOAID_TOUT": (5_000_000, _I),  # µs of inertial dead reckoning before position is invalid
     "EKF2_EVP_NOISE": (0.1, _F),  # m
     "EKF2_EVA_NOISE": (0.1, _F),  # rad
+    "EKF2_DELAY_MAX": (200.0, _F),  # ms: how far behind now the EKF fuses (its horizon)
+    "EKF2_TAU_POS": (0.25, _F),  # s: how tightly the output predictor follows the EKF's position
+    "EKF2_TAU_VEL": (0.25, _F),  # s: ... and its velocity
     "COM_DISARM_LAND": (2.0, _F),  # s
     "COM_DISARM_PRFLT": (10.0, _F),  # s
     "COM_LOW_BAT_ACT": (0, _I),  # 0 warning, 2 land, 3 return at critical / land at emergency
@@ -347,6 +350,12 @@ PX4_DEFAULTS: Final[Mapping[str, tuple[ParamValue, int]]] = {
 #: what the stamps miss (the original arena's 20 ms, measured with arrival stamps, would count the delay
 #: twice); PX4's default 0.1 m noise let its estimate trail the truth by 260–440 ms and the vehicle wander
 #: 33–36 cm around a held point, 0.02 m: 160–170 ms and 5–13 cm; 0.01 m jittered more (14–20 cm).
+#: EKF2_DELAY_MAX 50 ms and EKF2_TAU_POS / EKF2_TAU_VEL 0.1 s, measured from PX4's ULog (docs/px4.md,
+#: "Issue 25: the arena's EKF2 horizon and output predictor"): the arena's vision reaches PX4 a few ms
+#: late (mocap stamps mapped by TIMESYNC; no GNSS, whose 110 ms delay sets the default 200 ms horizon), so
+#: the EKF may fuse 50 ms behind now instead of 200, and the output predictor may follow it tightly; PX4's
+#: estimate then trails the truth by 70–85 ms instead of 190–195, 3 cm rms off it instead of 7, and the
+#: vehicle wanders 17–24 cm (max) around a held point instead of 36–40.
 ARENA_REQUIRED_PARAMS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "EKF2_EV_CTRL": (15, _I),
     "EKF2_HGT_REF": (3, _I),
@@ -357,6 +366,9 @@ ARENA_REQUIRED_PARAMS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "EKF2_EVP_NOISE": (0.02, _F),
     "EKF2_EVA_NOISE": (0.05, _F),
     "EKF2_NOAID_TOUT": (1_000_000, _I),
+    "EKF2_DELAY_MAX": (50.0, _F),
+    "EKF2_TAU_POS": (0.1, _F),
+    "EKF2_TAU_VEL": (0.1, _F),
     "COM_POSCTL_NAVL": (1, _I),
     "COM_OBL_RC_ACT": (4, _I),
     "COM_OF_LOSS_T": (1.0, _F),

@@ -48,29 +48,39 @@ EV_CTRL_YAW = 8
 
 @dataclass(frozen=True, slots=True)
 class Wander:
-    """How an estimate strays from the truth in flight: a random velocity error and the position error it makes.
+    """How an estimate strays from the truth in flight, and so how a vehicle wanders around its setpoint.
 
     The velocity error along each axis of the heading (forward, right, down) is a first-order random
     process (Ornstein-Uhlenbeck) of rms ``velocity_rms`` and correlation time ``velocity_tau_s``; the
     position error integrates it and is pulled back to the fused measurements with time constant
-    ``position_tau_s``.  The controllers act on the estimate: the vehicle's velocity loop follows a wrong
-    velocity and its position loop pulls it back, so it wanders around its setpoint by about the velocity
-    error over the position gain (MPC_XY_P).
+    ``position_tau_s``.  The roll and pitch estimates stray likewise (``tilt_rms``, ``tilt_tau_s``).  The
+    controllers act on the estimate: a wrong tilt held is a real sideways force, a wrong velocity followed
+    a real drift, and the position loop pulls the vehicle back.
     """
 
     velocity_rms: Vec3 = (0.0, 0.0, 0.0)  # m/s: forward, right, down
     velocity_tau_s: float = 0.7
     position_tau_s: float = 0.5
+    tilt_rms: tuple[float, float] = (0.0, 0.0)  # rad: roll, pitch
+    tilt_tau_s: float = 3.0
 
 
-#: PX4 v1.16 SITL (SIH) as its ULog measured it in hover, vision fed by the arena (docs/px4.md, "Issue 25"):
-#: velocity estimate off the truth by 0.03 / 0.10-0.13 / 0.06 m/s rms (north / east / down, heading north:
-#: the roll axis wanders, as PX4's roll estimate does), correlated over 0.6-0.8 s; position estimate 3-6 cm
-#: rms off; the estimate trailing the truth by 125-195 ms in flight; the vehicle wandering 10-19 cm (p50) and
-#: 24-41 cm (max) around its hover point.  These constants reproduce that with the simulation's controllers
-#: (tests/unit/sim/test_sim_px4_parity.py): the size of PX4/SIH's wander, not its cause inside PX4.
-PX4_SIH_ESTIMATE_LAG_S = 0.1
-PX4_SIH_WANDER = Wander(velocity_rms=(0.035, 0.15, 0.06), velocity_tau_s=0.7, position_tau_s=0.5)
+#: PX4 v1.16 SITL (SIH) set up by `arena px4 setup`, as its ULog measured it in hover with the arena's vision
+#: (docs/px4.md, "Issue 25"): its velocity estimate off the truth by 0.026 / 0.083 / 0.054 m/s rms (north /
+#: east / down, heading north), correlated over ~0.5 s; its position estimate 0.8 / 2.1 cm rms off; the
+#: estimate trailing the truth by 70-85 ms in flight; true roll 1.2-1.6° and pitch 0.4-0.7° std, its roll
+#: estimate 0.5-0.8° std off the truth; and the vehicle wandering 8-11 cm (p50) and 17-24 cm (max) around its
+#: hover point, along the roll axis far more than the pitch axis.  These constants reproduce that with the
+#: simulation's controllers (tests/unit/sim/test_sim_px4_parity.py): the size of PX4/SIH's wander, not its
+#: cause inside PX4.
+PX4_SIH_ESTIMATE_LAG_S = 0.05
+PX4_SIH_WANDER = Wander(
+    velocity_rms=(0.026, 0.085, 0.054),
+    velocity_tau_s=0.5,
+    position_tau_s=0.3,
+    tilt_rms=(math.radians(1.5), math.radians(0.5)),
+    tilt_tau_s=2.0,
+)
 
 
 class Estimator:
@@ -145,6 +155,7 @@ class Estimator:
         self._lagged = (position, (0.0, 0.0, 0.0))
         self._wander_v = [0.0, 0.0, 0.0]
         self._wander_p = [0.0, 0.0, 0.0]
+        self._wander_tilt = [0.0, 0.0]
 
     # --- validity flags (PX4 vehicle_local_position.*_valid) ---
     @property
@@ -194,6 +205,16 @@ class Estimator:
         self.position = (px + vx * dt, py + vy * dt, pz + vz * dt)
         roll, pitch, _ = quat_to_euler(body.attitude)
         self.roll, self.pitch = roll, pitch  # IMU tilt is well observed: take it as measured
+        wander = self.wander
+        if wander is not None and wander.tilt_rms != (0.0, 0.0):
+            # ... but not exactly: the attitude controller holds the estimated tilt, so an error in it is a
+            # real sideways force, which the position loop then fights (vision sees the vehicle move).
+            et = self._wander_tilt
+            decay = math.exp(-dt / wander.tilt_tau_s)
+            spread = math.sqrt(1.0 - decay * decay)
+            for i in (0, 1):
+                et[i] = decay * et[i] + spread * wander.tilt_rms[i] * self.rng.gauss(0.0, 1.0)
+            self.roll, self.pitch = roll + et[0], pitch + et[1]
         # Yaw from the body-rate about the vertical (gyro), with a bias.
         wz_world = quat_rotate(body.attitude, body.rates)[2]
         self.yaw = wrap_angle(self.yaw + (wz_world + self.gyro_z_bias) * dt)

@@ -466,7 +466,7 @@ def test_offboard_loss_with_px4_default_lands_in_position_mode(
     gcs.wait_for(lambda: gcs.mode == "POSCTL", 3.0, "Position mode failsafe")
     assert gcs.texts_with("Failsafe activated")
     gcs.wait_for(lambda: ap.true_pose().position[2] == 0.0, 1.0 + 1.0 / 0.7 + 2.0, "landed")
-    assert math.dist(ap.true_pose().position[:2], xy) < 0.2  # where it was
+    assert math.dist(ap.true_pose().position[:2], xy) < 0.4  # where it was, give or take PX4's wander
     gcs.wait_for(lambda: not gcs.armed, 4.0, "disarmed")
 
 

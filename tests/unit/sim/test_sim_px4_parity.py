@@ -445,7 +445,7 @@ def test_mission_upload_download_fly_and_clear(vehicle: Maker) -> None:
     gcs.wait_for(lambda: len(gcs.messages.get("MISSION_ITEM_REACHED", [])) == 2, 15.0, "both waypoints")
     assert [m.seq for m in gcs.messages["MISSION_ITEM_REACHED"]] == [0, 2]
     gcs.wait_for(lambda: gcs.messages["MISSION_CURRENT"][-1].mission_state == 5, 2.0, "COMPLETE")
-    assert math.dist(ap.true_pose().position, (1.0, 1.0, -1.5)) < 0.25
+    assert math.dist(ap.true_pose().position, (1.0, 1.0, -1.5)) < 0.4  # give or take PX4's wander
     assert ap._cruise_speed == 2.0  # the DO_CHANGE_SPEED item
     gcs.messages["MISSION_ACK"] = []
     gcs.conn.mav.mission_clear_all_send(SYSID, 1, 0)
@@ -508,11 +508,11 @@ def hover_spread(
 
 
 def test_hover_wanders_as_px4s_and_ideal_holds_still(vehicle: Maker) -> None:
-    """PX4 v1.16 SITL (SIH) fed the arena's vision wandered 10-19 cm (p50) and 24-41 cm (max) around its hover
-    point in 10 s windows, along its roll axis (east, heading north) far more than north, its velocity
-    estimate 0.03 / 0.10-0.13 m/s rms off the truth (docs/px4.md).  The simulation by default reproduces
-    that size; ``ideal`` holds still.  Bounds: the spread of six seeds and windows of the simulation
-    (p50 4.9-24.7 cm, max 12-57 cm), judged on the median window."""
+    """PX4 v1.16 SITL (SIH) set up by `arena px4 setup` and fed the arena's vision wandered 8-11 cm (p50) and
+    17-24 cm (max) around its hover point in 10 s windows, along its roll axis (east, heading north) far
+    more than north (true std 9-13 against 3 cm), its estimate 2-3 cm rms off the truth (docs/px4.md).  The
+    simulation by default reproduces that size; ``ideal`` holds still.  Bounds: the spread of the
+    simulation over six seeds and windows (p50 6-16 cm, max 10-58 cm), judged on the median window."""
     ap, gcs = vehicle(params=ARENA)
     gcs.fly_offboard_to(1.0)
     gcs.setpoint = {"z": -1.0}
