@@ -78,6 +78,13 @@ def bench(
             help="Pipeline configurations: downsampler (chain arena), transform (arena-td); default both.",
         ),
     ] = None,
+    vehicle_mode: Annotated[
+        str,
+        typer.Option(
+            "--vehicle-mode",
+            help="zenoh.vehicle_mode of the pipeline's config: client, same (default: the config's default).",
+        ),
+    ] = "",
     out: Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")] = Path(
         "bench-results"
     ),
@@ -121,6 +128,8 @@ def bench(
         changes["floors"] = tuple(floor)
     if decimate:
         changes["decimate"] = tuple(decimate)
+    if vehicle_mode:
+        changes["vehicle_mode"] = vehicle_mode
     if duration is not None:
         changes["duration"] = duration
     if warmup is not None:

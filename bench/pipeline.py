@@ -83,6 +83,7 @@ class RunSettings:
     repo: Path = Path(".")
     profile: Callable[[ProcessSet, float], dict[str, Any]] | None = None  # run during the window
     hops: bool = False  # also subscribe to the first vehicle's mocap/pose/vision for a per-stage breakdown
+    vehicle_mode: str = ""  # the config's zenoh.vehicle_mode ("": its default)
 
 
 @dataclass
@@ -132,10 +133,11 @@ def write_config(
     harness_ports: Sequence[int],
     *,
     decimate: str = "downsampler",
+    vehicle_mode: str = "",
 ) -> Path:
     """An arena config with private ports: multicast NatNet, no noise, gateways sending to the harness.
 
-    ``decimate`` is the config's ``[pipeline] decimate``.
+    ``decimate`` is the config's ``[pipeline] decimate``, ``vehicle_mode`` its ``zenoh.vehicle_mode``.
     """
     directory.mkdir(parents=True, exist_ok=True)
     router = free_port(socket_kind_tcp())
@@ -154,6 +156,7 @@ def write_config(
         'mode = "peer"',
         f'connect = ["tcp/127.0.0.1:{router}"]',
         f'router_listen = ["tcp/127.0.0.1:{router}"]',
+        *([f'vehicle_mode = "{vehicle_mode}"'] if vehicle_mode else []),
         f"[hosts.{HOST}]",
         'services = ["router", "sim", "mocap", "transform"]',
         "vehicles = [" + ", ".join(f'"d{i + 1}"' for i in range(n_vehicles)) + "]",
@@ -318,7 +321,7 @@ def run_arena(
     chain_name = CHAINS[decimate]
     workdir = settings.logs / f"{chain_name}-{n}"
     socks, ports = _vehicle_sockets(n)
-    path = write_config(workdir, n, rates[0], ports, decimate=decimate)
+    path = write_config(workdir, n, rates[0], ports, decimate=decimate, vehicle_mode=settings.vehicle_mode)
     cfg = load_config(path)
     socks["frames"] = stamped_socket(cfg.mocap.data_port, group=cfg.mocap.group)
     names = list(cfg.vehicles)

@@ -104,6 +104,7 @@ class BenchOptions:
     realistic_vision: float | None = 50.0  # Hz: one more point per vehicle count with this vision rate
     overload: int = 2  # CPU hogs beside the deployed point at the largest load, measured again (0: skip)
     decimate: tuple[str, ...] = tuple(CHAINS)  # the pipeline configurations measured ([pipeline] decimate)
+    vehicle_mode: str = ""  # zenoh.vehicle_mode of the pipeline's config ("": the config's default)
     quick: bool = False
 
     @classmethod
@@ -141,6 +142,8 @@ class BenchOptions:
             raise BenchError("peer rate, peer duration and micro scale must be positive")
         if self.peer_repeats < 1 or self.overload < 0:
             raise BenchError("peer repeats must be at least 1, overload hogs not negative")
+        if self.vehicle_mode not in ("", "client", "same"):
+            raise BenchError(f"--vehicle-mode must be client or same, got {self.vehicle_mode!r}")
         bad = [d for d in self.decimate if d not in CHAINS]
         if bad or not self.decimate:
             raise BenchError(f"--decimate must be among {', '.join(CHAINS)}, got {list(self.decimate)}")
@@ -287,6 +290,7 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
         repo=options.repo,
         profile=make_profiler(out_dir / f"profile-{stamp}") if options.profile else None,
         hops=options.hops,
+        vehicle_mode=options.vehicle_mode,
     )
     result: dict[str, Any] = {
         "version": 1,

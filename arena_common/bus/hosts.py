@@ -22,17 +22,22 @@ def host_name(explicit: str | None = None) -> str:
     return re.sub(r"[^A-Za-z0-9_.\-]", "_", name) or "host"
 
 
-def host_bus_options(cfg: ArenaConfig | None, host: str, options: BusOptions | None) -> BusOptions:
+def host_bus_options(
+    cfg: ArenaConfig | None, host: str, options: BusOptions | None, *, vehicle: str = ""
+) -> BusOptions:
     """The bus options of a session on ``host``: its address to listen on, its security settings.
 
     On a secured arena every session but a router is a Zenoh *client* of the router (it listens on
-    nothing; :func:`arena_common.bus.security.secured_options`).  Otherwise a peer listens on its
+    nothing; :func:`arena_common.bus.security.secured_options`).  So is a ``vehicle``'s own process when
+    ``zenoh.vehicle_mode`` is "client" and no ``--mode`` was given.  Otherwise a peer listens on its
     host's address; an arena that listens beyond loopback without security (``security.insecure``)
     says so at every start.
     """
     options = options or BusOptions()
     if cfg is None:
         return options
+    if vehicle and cfg.zenoh.vehicle_mode == "client" and options.mode is None and cfg.zenoh.mode != "router":
+        options = replace(options, mode="client", listen=())
     if cfg.security.enabled:  # the security module is loaded only for a secured arena
         from arena_common.bus import security
 

@@ -91,6 +91,9 @@ class ZenohSpec(Spec, frozen=True):
     """How services reach each other."""
 
     mode: ZenohMode = "peer"
+    # How each vehicle's own processes (its gateway, its downsampler) join the bus: "client" of the router
+    # (they listen on nothing and keep one link, however large the fleet) or as ``mode`` says ("same").
+    vehicle_mode: Literal["client", "same"] = "same"
     connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     listen: tuple[str, ...] = ()
     router_listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)

@@ -252,7 +252,9 @@ def running(
     own_bus = bus is None
     host = host_name(host)
     the_bus = (
-        open_bus(cfg.zenoh if cfg else None, host_bus_options(cfg, host, options)) if bus is None else bus
+        open_bus(cfg.zenoh if cfg else None, host_bus_options(cfg, host, options, vehicle=vehicle))
+        if bus is None
+        else bus
     )
     svc = Service(name, cfg, the_bus, host, vehicle, stop)
     signals = StopSignals(stop, again=lambda signum: exit_now(svc.log, signum)).install()

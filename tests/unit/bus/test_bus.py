@@ -1,10 +1,13 @@
 import threading
 from collections.abc import Callable
+from pathlib import Path
 
-from arena_common.bus.session import Bus, Channel
+from arena_common.bus.hosts import host_bus_options
+from arena_common.bus.session import Bus, BusOptions, Channel
+from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.runtime.service import running
-from tests.helpers import wait_for
+from tests.helpers import wait_for, write_config
 
 POSE = wire.Pose(t=1, p=(0.0, 0.0, -1.0), q=(1.0, 0.0, 0.0, 0.0), ok=True)
 
@@ -141,3 +144,28 @@ def test_matching_follows_subscribers_across_sessions(bus_factory: Callable[[], 
     local.close()
     pub.close()
     assert pub.matching is False  # closed: nothing matches, nothing raises
+
+
+def test_a_vehicles_process_joins_as_a_client_when_the_config_says(
+    tmp_path: Path, router_endpoint: str, bus_factory: Callable[[], Bus]
+) -> None:
+    """``zenoh.vehicle_mode = "client"``: a vehicle's own process is a client of the router (listens on
+    nothing), and still meets the peers through it; other processes and an explicit ``--mode`` keep theirs."""
+    path = write_config(tmp_path, router_endpoint)
+    path.write_text(
+        path.read_text().replace('mode = "peer"\n', 'mode = "peer"\nvehicle_mode = "client"\n', 1)
+    )
+    cfg = config_mod.load(path)
+    assert host_bus_options(cfg, "test", None, vehicle="d1") == BusOptions(mode="client")
+    assert host_bus_options(cfg, "test", BusOptions(listen=("tcp/127.0.0.1:0",)), vehicle="d1").listen == ()
+    assert host_bus_options(cfg, "test", None).mode is None  # not a vehicle's process: zenoh.mode
+    assert host_bus_options(cfg, "test", BusOptions(mode="peer"), vehicle="d1").mode == "peer"
+    peer = bus_factory()
+    stats = peer.subscribe(keys.stats("test", "gateway.d1"), capacity=8)
+    with running("gateway", cfg, vehicle="d1", host="test", clock=False, stats_period=0.2) as svc:
+        assert svc.id == "gateway.d1"
+        routers = list(svc.bus.session.info.routers_zid())
+        peers = list(svc.bus.session.info.peers_zid())
+        assert len(routers) == 1 and peers == []  # one link: the router
+        first = stats.get(timeout=10.0)
+        assert first is not None and isinstance(first.payload, wire.Stats)
