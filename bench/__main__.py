@@ -85,6 +85,13 @@ def bench(
             help="zenoh.vehicle_mode of the pipeline's config: client, same (default: the config's default).",
         ),
     ] = "",
+    fleet: Annotated[
+        int | None,
+        typer.Option(
+            "--fleet",
+            help="Vehicles of the fleet point (deployed vision, every configuration; default 50, 0: skip).",
+        ),
+    ] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")] = Path(
         "bench-results"
     ),
@@ -105,8 +112,8 @@ def bench(
     ] = None,
 ) -> None:
     """Measure the arena: end-to-end latency, loss, vision rate, CPU and memory at 1 and 20 vehicles × 180 Hz
-    (as deployed and overloaded too), beside a bare Zenoh and a UDP chain of the same processes, the
-    gateway beside its floors and MAVProxy, and per-stage costs."""
+    (as deployed and overloaded too) and a fleet of 50 as deployed, beside a bare Zenoh and a UDP chain of
+    the same processes, the gateway beside its floors and MAVProxy, and per-stage costs."""
     from bench import run as bench_mod
 
     if rerender is not None:
@@ -130,6 +137,8 @@ def bench(
         changes["decimate"] = tuple(decimate)
     if vehicle_mode:
         changes["vehicle_mode"] = vehicle_mode
+    if fleet is not None:
+        changes["fleet"] = fleet
     if duration is not None:
         changes["duration"] = duration
     if warmup is not None:

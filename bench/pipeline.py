@@ -79,6 +79,7 @@ class RunSettings:
     drain: float = 0.3  # s after the window for late messages to arrive
     start_timeout: float = 90.0  # s for the processes to come up and data to flow
     idle: float = 1.0  # s of idle CPU measured before the stream starts (0: skip)
+    settle: float = 0.5  # s after every service came up before the idle window opens
     logs: Path = Path("bench-results/logs")
     repo: Path = Path(".")
     profile: Callable[[ProcessSet, float], dict[str, Any]] | None = None  # run during the window
@@ -302,6 +303,7 @@ def run_arena(
     overload: int = 0,
     on_point: Callable[[PointResult], None] | None = None,
     decimate: str = "downsampler",
+    deployed_only: bool = False,
 ) -> list[PointResult]:
     """The real pipeline for ``n`` vehicles at each rate (processes started once, the emulator per rate).
 
@@ -312,7 +314,9 @@ def run_arena(
     CPU hogs (``while True: pass``, nice 0) beside it for the warm-up and the window (chain
     ``arena-v<rate>-loaded``): whether every vehicle's vision survives a computer that cannot keep up.
     ``decimate`` is the config's ``[pipeline] decimate``: ``downsampler`` (one process per vehicle; chain
-    ``arena``) or ``transform`` (chain ``arena-td``).
+    ``arena``) or ``transform`` (chain ``arena-td``).  ``deployed_only`` skips the every-pose points: the
+    decimators start at ``realistic_vision`` and only the deployed (and overloaded) points run, the idle
+    figures and the start-up with the first of them (the fleet point).
     """
     from arena_common.pipeline.transform import frame_transform
     from arena_common.sim.natnet_scene import rigid_bodies
@@ -463,7 +467,8 @@ def run_arena(
         watcher = StatsWatcher(bus)
         if settings.hops:
             hop_watcher = HopWatcher(bus, names[0])
-        decimators(VISION_RATE)
+        deployed_now = deployed_only and realistic_vision is not None
+        decimators(realistic_vision if deployed_now and realistic_vision is not None else VISION_RATE)
         if decimate == "downsampler":
             procs.spawn(
                 "transform", "transform", python_module("services.frame_transform", *common), settings.repo
@@ -479,21 +484,22 @@ def run_arena(
         startup["services"] = time.monotonic() - t_start
         idle: dict[str, dict[str, Any]] = {}
         if settings.idle > 0:
-            time.sleep(0.5)
+            time.sleep(settings.settle)
             procs.mark()
             time.sleep(settings.idle)
             idle = procs.usage()
-        for rate in rates:
+        for rate in rates if not deployed_now else ():
             measure(rate, chain_name, VISION_RATE, idle)
             idle = {}
         if realistic_vision is not None:
-            role = "downsampler" if decimate == "downsampler" else "transform"
-            for c in [c for c in procs.children if c.role == role]:
-                procs.stop(c)
-            decimators(realistic_vision)
-            all_up()
+            if not deployed_now:
+                role = "downsampler" if decimate == "downsampler" else "transform"
+                for c in [c for c in procs.children if c.role == role]:
+                    procs.stop(c)
+                decimators(realistic_vision)
+                all_up()
             deployed = f"{chain_name}-v{realistic_vision:g}"
-            measure(rates[0], deployed, realistic_vision, {})
+            measure(rates[0], deployed, realistic_vision, idle)
             if overload > 0:
                 measure(rates[0], f"{deployed}-loaded", realistic_vision, {}, hogs=overload)
     finally:

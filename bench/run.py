@@ -105,6 +105,9 @@ class BenchOptions:
     overload: int = 2  # CPU hogs beside the deployed point at the largest load, measured again (0: skip)
     decimate: tuple[str, ...] = tuple(CHAINS)  # the pipeline configurations measured ([pipeline] decimate)
     vehicle_mode: str = ""  # zenoh.vehicle_mode of the pipeline's config ("": the config's default)
+    fleet: int = 50  # vehicles of the fleet point: deployed vision only, every configuration, per-vehicle
+    # processes as clients of the router unless vehicle_mode says otherwise (0: skip)
+    fleet_settle: float = 5.0  # s after the fleet's services came up before its idle window
     quick: bool = False
 
     @classmethod
@@ -120,6 +123,7 @@ class BenchOptions:
             peer_repeats=1,
             peer_sweep=(1000.0,),
             micro_scale=0.2,
+            fleet=0,
             quick=True,
         )
         return replace(base, **changes)
@@ -142,6 +146,8 @@ class BenchOptions:
             raise BenchError("peer rate, peer duration and micro scale must be positive")
         if self.peer_repeats < 1 or self.overload < 0:
             raise BenchError("peer repeats must be at least 1, overload hogs not negative")
+        if self.fleet and not 1 <= self.fleet <= 200:
+            raise BenchError(f"the fleet must be within 1..200 vehicles, got {self.fleet}")
         if self.vehicle_mode not in ("", "client", "same"):
             raise BenchError(f"--vehicle-mode must be client or same, got {self.vehicle_mode!r}")
         bad = [d for d in self.decimate if d not in CHAINS]
@@ -367,6 +373,27 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
                                 vision_rate=options.realistic_vision,
                                 on_point=on_point,
                             )
+            if "pipeline" in options.parts and options.fleet and options.realistic_vision is not None:
+                n = options.fleet
+                console.print(f"[bold]fleet[/bold], {n} vehicles, vision {options.realistic_vision:g} Hz")
+                fleet_settings = replace(
+                    settings,
+                    settle=options.fleet_settle,
+                    idle=max(settings.idle, 2.0),
+                    vehicle_mode=options.vehicle_mode or "client",  # as `arena demo --vehicles N` flies
+                )
+                for decimate in reversed(options.decimate):  # transform first: it keeps up best
+                    with timed(f"fleet {n} {decimate}"):
+                        run_arena(
+                            n,
+                            options.rates[:1],
+                            fleet_settings,
+                            realistic_vision=options.realistic_vision,
+                            overload=options.overload if decimate == "transform" else 0,
+                            on_point=on_point,
+                            decimate=decimate,
+                            deployed_only=True,
+                        )
             result["points"] = [_clean(p.as_dict()) for p in points]
             console.print(_rich("End-to-end latency", LATENCY_HEADER, latency_rows(points)))
             console.print(_rich("CPU (% of one core) and memory", RESOURCE_HEADER, resource_rows(points)))

@@ -249,8 +249,10 @@ def fleet_config(base: Path, n: int, out: Path) -> tuple[Path, dict[str, tuple[f
     placed on a grid inside its room; their places by name.
 
     Every vehicle gets a free loopback UDP port for its MAVLink link and the system id of its number; the
-    base's first host runs them all, and the transform decimates (``[pipeline] decimate = "transform"``:
-    no downsampler process per vehicle).  Everything else (mocap, Zenoh, the room) is the base's.
+    base's first host runs them all, the transform decimates (``[pipeline] decimate = "transform"``: no
+    downsampler process per vehicle) and each gateway is a client of the router (``[zenoh] vehicle_mode =
+    "client"``: no peer mesh of N processes; docs/performance.md, "Fifty vehicles").  Everything else
+    (mocap, the rest of Zenoh, the room) is the base's.
     """
     if not 1 <= n <= MAX_FLEET:
         raise ArenaError(f"--vehicles: 1..{MAX_FLEET} (MAVLink system ids), got {n}")
@@ -264,6 +266,7 @@ def fleet_config(base: Path, n: int, out: Path) -> tuple[Path, dict[str, tuple[f
     spots = grid(n, (size[0], size[1]), cfg.arena.margin + FLEET_RADIUS + 0.1)
     names = [f"d{i + 1}" for i in range(n)]
     doc.setdefault("pipeline", {})["decimate"] = "transform"
+    doc.setdefault("zenoh", {})["vehicle_mode"] = "client"
     hosts = doc.setdefault("hosts", {})
     for h in hosts.values():
         h["vehicles"] = []

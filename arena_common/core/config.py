@@ -91,8 +91,10 @@ class ZenohSpec(Spec, frozen=True):
     """How services reach each other."""
 
     mode: ZenohMode = "peer"
-    # How each vehicle's own processes (its gateway, its downsampler) join the bus: "client" of the router
-    # (they listen on nothing and keep one link, however large the fleet) or as ``mode`` says ("same").
+    # How each vehicle's own processes (its gateway, its downsampler) join the bus: as ``mode`` says
+    # ("same": peers keep vision flowing when the router dies) or "client" of the router (they listen on
+    # nothing and keep one link however large the fleet; the router then carries every vision stream:
+    # docs/performance.md, "Fifty vehicles").
     vehicle_mode: Literal["client", "same"] = "same"
     connect: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     listen: tuple[str, ...] = ()

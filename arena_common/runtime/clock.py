@@ -15,7 +15,9 @@ host's offset with request/answer exchanges:
   the intersection of the last exchanges' intervals: its centre is the offset, its half-width a bound
   of the error (the uncertainty), never a guess;
 - an exchange whose interval misses the current estimate means a clock stepped (NTP, an operator):
-  the estimate starts again from it (counted in ``steps``).
+  the estimate starts again from it (counted in ``steps``);
+- a service on the mocap host itself (the answer names the reference's host, and it is ours) reads the
+  same wall clock: its offset is exactly 0, with no uncertainty, however slow the exchanges.
 
 :class:`ClockSync` runs the exchanges in its own thread (every ``clock.period`` s), publishes the
 estimate as :class:`~arena_common.core.wire.ClockOffset` on ``arena/sys/clock/<host>/<service>``, and
@@ -233,9 +235,15 @@ class ClockSync:
             self.log.warning("a clock stepped (the exchange contradicts the estimate): measuring again")
         return refused
 
+    @property
+    def same_host(self) -> bool:
+        """Whether the reference answered from this very host: one wall clock, so the offset is exactly 0
+        (no estimate, whatever the round trips through a busy bus)."""
+        return self.ref == self.host
+
     def offset_ns(self) -> int | None:
         """The mocap host's clock minus ours now, ns (None while unknown); cheap, for every pose."""
-        if self.reference:
+        if self.reference or self.same_host:
             return 0
         now = time.monotonic()
         cached = self._cached
@@ -257,6 +265,8 @@ class ClockSync:
             est = self.estimator.estimate(mono)
             ref, answered = self.ref, self.answered
         spec, host = self.spec, self.host
+        if est is not None and self.same_host:
+            return ClockStatus("ok", Estimate(0, 0, est.rtt_ns, est.samples), ref, None, None)
         if est is None:
             if answered == 0 and self.unanswered > 0:
                 problem = (

@@ -423,7 +423,8 @@ def test_the_rate_sweep_compares_each_forwarder_with_mavproxy_at_the_same_rate()
 
 
 def test_the_fleet_point_is_judged_against_issue_27s_targets() -> None:
-    """50 vehicles: vision as deployed, idle RSS and CPU per per-vehicle process, start-up to vision."""
+    """50 vehicles: vision as deployed in each configuration and beside CPU hogs (p50 ≤ 2.6 ms, p99 ≤ 10 ms),
+    idle RSS and CPU per per-vehicle process with the whole arena's, start-up to vision."""
     arena = {"router": 1.0, "ingest": 9.0, "transform": 30.0, "gateway": 150.0}
     idle = {
         f"gateway.d{k}": {"role": "gateway", "pid": 1, "cpu": 0.15 if k else 0.3, "rss": 45 << 20}
@@ -431,20 +432,34 @@ def test_the_fleet_point_is_judged_against_issue_27s_targets() -> None:
     }
     idle["transform"] = {"role": "transform", "pid": 1, "cpu": 2.0, "rss": 90 << 20}
     deployed = {"min": 48.0, "median": 50.0, "max": 50.2}
-    points = [
-        _point("arena-td", 50, arena, p50=6.0, idle=idle, startup={"services": 21.0, "vision": 4.5}),
-        _point("arena-td-v50", 50, arena, p50=5.0, vision_rate=deployed),
+    points = [  # the fleet point runs deployed only: its idle figures and start-up come with the first
+        _point(
+            "arena-td-v50",
+            50,
+            arena,
+            p50=2.0,
+            vision_rate=deployed,
+            idle=idle,
+            startup={"services": 21.0, "vision": 4.5},
+        ),
+        _point("arena-td-v50-loaded", 50, arena, p50=4.0, vision_rate=deployed, hogs=2),
+        _point("arena-v50", 50, arena, p50=2.5, vision_rate={"min": 30.0, "median": 50.0, "max": 50.0}),
     ]
-    t = _targets(_result(250.0, points))
-    vision = t["50 vehicles × 180 Hz as deployed"]
-    assert vision.met is True and vision.measured.startswith("p50 5.0 ms, least 48.0 poses/s")
+    t = {x.name: x for x in report.evaluate_targets(_result(250.0, points))}
+    vision = t["50 vehicles × 180 Hz as deployed (vision 50 Hz), transform decimates"]
+    assert vision.met is True and vision.measured.startswith("p50 2.0 ms, least 48.0 poses/s")
+    assert vision.goal.endswith("p50 ≤ 2.6 ms, p99 ≤ 10 ms, no undesigned loss")
+    loaded = t["50 vehicles × 180 Hz as deployed (vision 50 Hz) beside 2 CPU hogs, transform decimates"]
+    assert loaded.met is False and loaded.measured.startswith("p50 4.0 ms")  # p50 and p99 over
+    per_vehicle = t["50 vehicles × 180 Hz as deployed (vision 50 Hz), downsampler per vehicle"]
+    assert per_vehicle.met is False and "least 30.0 poses/s" in per_vehicle.measured  # a vehicle starved
     rss = t["idle per-vehicle process RSS at 50 vehicles"]
-    assert rss.met is False and rss.measured == "largest 45.0 MB, total 2250 MB over 50 processes"
-    cpu = t["idle per-vehicle process CPU at 50 vehicles"]
+    assert rss.met is False and rss.measured.startswith("largest 45.0 MB, total 2250 MB over 50 processes")
+    assert rss.measured.endswith("the whole arena 2340 MB (transform decimates)")
+    cpu = t["idle per-vehicle process CPU at 50 vehicles (no mocap)"]
     assert cpu.met is False and cpu.measured.startswith("mean 0.15 %, largest 0.30 %, total 7.7 %")
     up = t["start-up of 50 vehicles to vision from every vehicle"]
     assert up.met is True and up.measured.startswith("25.5 s: services alive 21.0 s")
-    assert t["idle per-vehicle process CPU at 50 vehicles"].met is False
     assert _targets(_result(250.0, points[1:]))["idle per-vehicle process RSS at 50 vehicles"].met is None
     no_fleet = _targets(_result(250.0, [_point("arena-td", 20, arena)]))
     assert not [name for name in no_fleet if "50 vehicles" in name]  # judged only when a fleet point ran

@@ -56,7 +56,9 @@ def test_a_fleet_on_a_grid_flies_the_formation_and_lands(
     assert len(set(starts)) == 4 and all(abs(n) < 3.5 and abs(e) < 2.0 for n, e in starts), starts
     raw = tomllib.loads(fleet.read_text())
     assert raw["mocap"]["command_port"] == base.command_port  # the base's ports, kept
-    assert raw["zenoh"] == tomllib.loads(base.path.read_text())["zenoh"]
+    # The base's Zenoh, with each gateway a client of the router (no peer mesh of N processes).
+    assert raw["zenoh"] == {**tomllib.loads(base.path.read_text())["zenoh"], "vehicle_mode": "client"}
+    assert cfg.zenoh.vehicle_mode == "client"
 
     assert cmd.exits_within(FLOWN_S) == 0, cmd.output() + "\n" + log.read_text(errors="replace")[-3000:]
     out = cmd.output()

@@ -174,6 +174,24 @@ def test_an_uncertain_offset_is_a_problem_naming_the_clock(bus_factory: Callable
         ref.close()
 
 
+def test_on_the_mocap_host_itself_the_offset_is_exactly_zero(bus_factory: Callable[[], Bus]) -> None:
+    """A service on the reference's own host reads the same wall clock: offset 0 ± 0, however slow the
+    exchanges (the uncertainty limit that fails cc1 above does not apply)."""
+    spec = ClockSpec(period=0.1, max_uncertainty=1e-6)
+    ref = ClockSync(bus_factory(), "ground", "mocap", spec, reference=True).start()
+    local = ClockSync(bus_factory(), "ground", "gateway.d1", spec).start()
+    try:
+        assert local.offset_ns() is None  # nothing known before the first answer names the host
+        wait_for(lambda: local.answered >= 2, 5.0, what="two answers")
+        st = local.status()
+        assert st.state == "ok" and st.problem is None and st.warning is None and st.ref == "ground"
+        assert st.estimate is not None and st.estimate.offset_ns == 0 and st.estimate.unc_ns == 0
+        assert local.offset_ns() == 0 and local.same_host
+    finally:
+        local.close()
+        ref.close()
+
+
 def test_the_reference_refuses_other_ops(bus_factory: Callable[[], Bus]) -> None:
     ref = ClockSync(bus_factory(), "ground", "mocap", reference=True)
     client = bus_factory()
