@@ -18,6 +18,7 @@ class GatewayOptions:
     # Hz, arena/<drone>/state; None: the vehicle's ``state_rate`` in the config
     state_rate: float | None = None
     unwatched_rate: float = 10.0  # Hz of the supervisor's checks while nobody subscribes to the state
+    idle_rate: float = 2.0  # Hz of them while, besides, the vehicle is disarmed (link loss is 3 s anyway)
     # Hz per message type on arena/<drone>/telemetry/<MSG> (0: none); None: the vehicle's ``telemetry_rate``
     telemetry_rate: float | None = None
     stream_rate: float = 20.0  # Hz, offboard setpoints repeated while their lease runs
