@@ -76,6 +76,7 @@ def write_arena_config(
     multicast: bool = True,
     name: str = "arena.toml",
     decimate: str = "downsampler",
+    vehicle_mode: str = "",
 ) -> Path:
     """Write a one-host (``test``) config with free ports; return its path.
 
@@ -84,8 +85,9 @@ def write_arena_config(
     gateway listens on (else a free one); ``recorder`` is the body of a ``[recorder]`` table;
     ``endpoint`` is the router's (else a free port); ``multicast`` false streams NatNet by unicast (a
     fresh network namespace has no multicast route); ``decimate`` is ``[pipeline] decimate`` (with
-    ``transform``, no host runs downsamplers).  Without the ``mocap`` service nothing answers the clock
-    check, so ``clock.require`` is then false.
+    ``transform``, no host runs downsamplers); ``vehicle_mode`` is ``[zenoh] vehicle_mode`` (else the
+    default).  Without the ``mocap`` service nothing answers the clock check, so ``clock.require`` is then
+    false.
     """
     if decimate == "transform":
         vehicle_services = [s for s in vehicle_services if s != "downsampler"]
@@ -106,6 +108,8 @@ def write_arena_config(
     ]
     if lease_ms is not None:
         lines.append(f"lease_ms = {lease_ms}")
+    if vehicle_mode:
+        lines.append(f'vehicle_mode = "{vehicle_mode}"')
     if "mocap" not in services:  # the test feeds vision itself: no ingest, no time reference on the bus
         lines += ["[clock]", "require = false"]
     names = [f"d{i + 1}" for i in range(vehicles)]

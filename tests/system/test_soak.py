@@ -64,6 +64,8 @@ MOCAP_HZ = float(os.environ.get("ARENA_SOAK_MOCAP_HZ", 180.0 if FULL else 240.0)
 VISION_HZ = 50.0
 # The configuration for many vehicles on one computer; ARENA_SOAK_DECIMATE=downsampler soaks the default one.
 DECIMATE = os.environ.get("ARENA_SOAK_DECIMATE", "transform")
+# The full soak flies the fleet as `arena demo --vehicles N` does: gateways as clients of the router.
+VEHICLE_MODE = os.environ.get("ARENA_SOAK_VEHICLE_MODE", "client" if FULL else "")
 
 
 @dataclass
@@ -126,6 +128,7 @@ def soak(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Soak]:
         services=("router", "sim", "mocap", "transform"),
         mocap_rate=MOCAP_HZ,
         decimate=DECIMATE,
+        vehicle_mode=VEHICLE_MODE,
     )
     cfg = config_mod.load(path)
     names = list(cfg.vehicles)
@@ -285,6 +288,7 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
         "window_s": round(seconds, 1),
         "mode": "full" if FULL else "short",
         "decimate": DECIMATE,
+        "vehicle_mode": VEHICLE_MODE or "same",
         "cores": os.cpu_count(),
         "poses_from_ingest": ingest_out,
         "vision_sent": total["gw_sent"],
