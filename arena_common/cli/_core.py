@@ -35,6 +35,11 @@ def config_check(files: Annotated[list[Path], typer.Argument(help="Config files 
     for f in files:
         try:
             cfg = config_mod.load(f)
+            if any(v.stream_rates for v in cfg.vehicles.values()):  # MAVLink names: the dialect, on demand
+                from arena_common.gateway.options import stream_ids
+
+                for name in cfg.vehicles:
+                    stream_ids(cfg, name)
         except ConfigError as exc:
             typer.echo(f"error: {exc}", err=True)
             failed = True

@@ -54,6 +54,14 @@ RESEND_LAND = 2.0  # s between land orders to a vehicle still flying (not landin
 FLEET_RADIUS = 0.3  # m: the circle a fleet's grid flies around its spots
 FLEET_SPACING = 0.35  # m: the least distance between two vehicles of a fleet's grid
 MAX_FLEET = 250  # MAVLink system ids 1..250
+#: PX4 streams these on its onboard link at 30-100 Hz; the gateway reads none of them for itself, and a
+#: program sees raw telemetry at the vehicle's telemetry_rate (10 Hz) at most: a fleet asks for 10 Hz.
+FLEET_STREAMS: dict[str, float] = {
+    "ATTITUDE": 10.0,
+    "HIGHRES_IMU": 10.0,
+    "ODOMETRY": 10.0,
+    "GLOBAL_POSITION_INT": 10.0,
+}
 
 
 class Stopped(ArenaError):
@@ -250,9 +258,10 @@ def fleet_config(base: Path, n: int, out: Path) -> tuple[Path, dict[str, tuple[f
 
     Every vehicle gets a free loopback UDP port for its MAVLink link and the system id of its number; the
     base's first host runs them all, the transform decimates (``[pipeline] decimate = "transform"``: no
-    downsampler process per vehicle) and each gateway is a client of the router (``[zenoh] vehicle_mode =
-    "client"``: no peer mesh of N processes; docs/performance.md, "Fifty vehicles").  Everything else
-    (mocap, the rest of Zenoh, the room) is the base's.
+    downsampler process per vehicle), each gateway is a client of the router (``[zenoh] vehicle_mode =
+    "client"``: no peer mesh of N processes) and asks its autopilot to stream the messages it does not use
+    itself at no more than users see of them (:data:`FLEET_STREAMS`; docs/performance.md, "Fifty
+    vehicles").  Everything else (mocap, the rest of Zenoh, the room) is the base's.
     """
     if not 1 <= n <= MAX_FLEET:
         raise ArenaError(f"--vehicles: 1..{MAX_FLEET} (MAVLink system ids), got {n}")
@@ -278,6 +287,7 @@ def fleet_config(base: Path, n: int, out: Path) -> tuple[Path, dict[str, tuple[f
             "rigid_body": name,
             "mavlink": f"udpin:127.0.0.1:{port}",
             "system_id": i + 1,
+            "stream_rates": dict(FLEET_STREAMS),
             "sim": {"start": list(spot)},
         }
         for i, (name, port, spot) in enumerate(zip(names, _free_udp_ports(n), spots, strict=True))

@@ -125,6 +125,7 @@ class SimVehicleSpec(Spec, frozen=True):
 
 
 Px4ParamName = Annotated[str, Meta(pattern=r"^[A-Z][A-Z0-9_]{0,15}$")]
+MavlinkName = Annotated[str, Meta(pattern=r"^[A-Z][A-Z0-9_]{0,49}$")]
 
 
 class VehicleSpec(Spec, frozen=True):
@@ -147,6 +148,12 @@ class VehicleSpec(Spec, frozen=True):
     # message type on arena/<d>/telemetry/<MSG> (0: none).
     state_rate: Annotated[float, Meta(ge=1.0, le=200.0)] = 50.0
     telemetry_rate: Annotated[float, Meta(ge=0.0, le=200.0)] = 10.0
+    # Rates (Hz) the gateway asks the autopilot to stream messages at, by MAVLink name, whenever the link
+    # comes up (MAV_CMD_SET_MESSAGE_INTERVAL; 0 stops the stream): e.g. { ATTITUDE = 10, HIGHRES_IMU = 0 }
+    # (what mavros' stream rates and MAVSDK's set_rate_* do). Every stream PX4 sends, the gateway reads.
+    stream_rates: dict[MavlinkName, Annotated[float, Meta(ge=0.0, le=1000.0)]] = msgspec.field(
+        default_factory=dict
+    )
     require_setup: bool = True
     gcs: str = ""
     signing_key_file: str = ""  # MAVLink 2 signing: a file holding the 32-byte secret key as 64 hex digits

@@ -66,7 +66,7 @@ from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.gateway.commands import CommandExecutor
 from arena_common.gateway.events import EventSink
-from arena_common.gateway.options import GatewayOptions
+from arena_common.gateway.options import GatewayOptions, stream_ids
 from arena_common.gateway.origin import GlobalOrigin
 from arena_common.gateway.setpoints import SetpointForwarder
 from arena_common.gateway.state import VehicleState
@@ -117,6 +117,7 @@ class Gateway:
         self.telemetry_rate = v.telemetry_rate if o.telemetry_rate is None else o.telemetry_rate
         self.stats = stats or Stats()
         self.log = log or logging.getLogger(f"arena.gateway.{v.name}")
+        self._stream_rates = stream_ids(cfg, v.name)  # before opening anything: a bad name is a config error
         key = vehicle_key(cfg, v.name)  # SigningError (a ConfigError) for a bad key file
         self.signing = LinkSigning(key, allow_unsigned=GATEWAY_UNSIGNED) if key is not None else None
         self.link = MavlinkLink(
@@ -446,6 +447,8 @@ class Gateway:
             if self.options.estimator_rate > 0:
                 interval_us = 1e6 / self.options.estimator_rate
                 self.commander.send(px4.MAV_CMD_SET_MESSAGE_INTERVAL, (MSG_ESTIMATOR_STATUS, interval_us))
+            for msgid, hz in self._stream_rates.items():  # the vehicle's stream_rates: 0 stops the stream
+                self.commander.send(px4.MAV_CMD_SET_MESSAGE_INTERVAL, (msgid, 1e6 / hz if hz > 0 else -1.0))
         if self._check_wanted and self.state.link and not self._checking.locked():
             self._check_wanted = False
             threading.Thread(target=self._background_check, name=f"gw-{self.name}-check", daemon=True).start()

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError
 from arena_common.mavlink.link import mavlink2
 
-__all__ = ["GatewayOptions"]
+__all__ = ["GatewayOptions", "stream_ids"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -37,3 +39,16 @@ class GatewayOptions:
     # EKF global origin (lat deg, lon deg, alt m AMSL) given to an EKF that has none; None: never sent
     origin: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
     estimator_rate: float = 5.0  # Hz of ESTIMATOR_STATUS asked for (position validity); 0: not asked
+
+
+def stream_ids(cfg: ArenaConfig, vehicle: str) -> dict[int, float]:
+    """A vehicle's ``stream_rates`` by MAVLink message id; :class:`ConfigError` naming an unknown message."""
+    out: dict[int, float] = {}
+    for name, hz in cfg.vehicle(vehicle).stream_rates.items():
+        msgid = getattr(mavlink2, f"MAVLINK_MSG_ID_{name}", None)
+        if not isinstance(msgid, int):
+            raise ConfigError(
+                f"{cfg.path}: vehicles.{vehicle}.stream_rates: no MAVLink message named {name!r}"
+            )
+        out[msgid] = hz
+    return out

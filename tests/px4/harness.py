@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -30,6 +31,7 @@ from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.geometry.frames import quat_yaw, wrap_angle
+from arena_common.runtime.process import child_setup
 from arena_common.runtime.px4_sitl import MAX_INSTANCE, Px4Sitl, Px4SitlError, instance_busy
 from services.px4_sitl import boot_params
 from tests.conftest import REPO, free_port
@@ -196,6 +198,8 @@ class Px4Stack:
                 stdin=subprocess.DEVNULL,
                 stdout=log,
                 stderr=subprocess.STDOUT,
+                # A test run that is killed takes its services with it (they had outlived it).
+                preexec_fn=child_setup(os.getpid(), signal.SIGTERM),
             )
         return p.proc
 

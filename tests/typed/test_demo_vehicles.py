@@ -59,6 +59,7 @@ def test_a_fleet_on_a_grid_flies_the_formation_and_lands(
     # The base's Zenoh, with each gateway a client of the router (no peer mesh of N processes).
     assert raw["zenoh"] == {**tomllib.loads(base.path.read_text())["zenoh"], "vehicle_mode": "client"}
     assert cfg.zenoh.vehicle_mode == "client"
+    assert {v.stream_rates["ATTITUDE"] for v in cfg.vehicles.values()} == {10.0}  # PX4's 100 Hz: unread
 
     assert cmd.exits_within(FLOWN_S) == 0, cmd.output() + "\n" + log.read_text(errors="replace")[-3000:]
     out = cmd.output()

@@ -34,6 +34,13 @@ def test_config_check_ok_and_errors(tmp_path: Path) -> None:
     res = runner.invoke(app, ["config", "check", str(bad)])
     assert res.exit_code == 2
     assert f"{bad}: vehicles.d1.system_id: expected an integer" in res.output
+    streams = tmp_path / "streams.toml"  # a MAVLink name the dialect does not know, caught before any start
+    streams.write_text(
+        '[vehicles.d1]\nmavlink = "udpin:127.0.0.1:1"\nsystem_id = 1\nstream_rates = { ATTITUDES = 5 }\n'
+    )
+    res = runner.invoke(app, ["config", "check", str(streams)])
+    assert res.exit_code == 2
+    assert f"{streams}: vehicles.d1.stream_rates: no MAVLink message named 'ATTITUDES'" in res.output
 
 
 def test_router_and_echo_across_processes(processes: Callable[..., Proc]) -> None:

@@ -24,6 +24,7 @@ from pymavlink import mavutil
 from arena_common.bus.session import Bus
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import ConfigError
 from arena_common.gateway.gateway import Gateway, GatewayOptions
 from arena_common.mavlink import px4
 from arena_common.runtime.service import running
@@ -500,3 +501,28 @@ def test_state_and_telemetry_rates_come_from_the_vehicle_unless_the_options_say(
             assert (gw.state_rate, gw.telemetry_rate) == rates
         finally:
             gw.close()
+
+
+def test_stream_rates_are_asked_of_the_autopilot_when_the_link_comes_up(
+    arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
+) -> None:
+    """``stream_rates`` (as mavros' stream rates): ATTITUDE slowed, HIGHRES_IMU stopped, the rest as PX4
+    streams them; an unknown message name is a config error naming the field."""
+    cfg = arena_config(speed=SPEED)
+    d1 = cfg.vehicle("d1").replace(stream_rates={"ATTITUDE": 5.0, "HIGHRES_IMU": 0.0})
+    cfg = cfg.replace(vehicles={"d1": d1})
+    rig = Rig(cfg, bus_factory(), params=ARENA_PARAMS)
+    try:
+        rig.start_gateway("d1")
+        rig.wait_ready("d1")
+        ap = rig.aps["d1"]
+        wait_for(lambda: ap._intervals[30] == pytest.approx(0.2), 5.0, what="ATTITUDE at 5 Hz")
+        wait_for(lambda: ap._intervals[105] == math.inf, 5.0, what="HIGHRES_IMU stopped")
+        assert ap._intervals[32] == pytest.approx(1 / 30)  # LOCAL_POSITION_NED as PX4 streams it
+    finally:
+        rig.close()
+    bad = cfg.replace(vehicles={"d1": d1.replace(stream_rates={"ATTITUDES": 5.0})})
+    with pytest.raises(
+        ConfigError, match=r"vehicles\.d1\.stream_rates: no MAVLink message named 'ATTITUDES'"
+    ):
+        Gateway(bad, "d1", None)
