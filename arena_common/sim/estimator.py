@@ -68,7 +68,7 @@ class Wander:
 #: PX4 v1.16 SITL (SIH) set up by `arena px4 setup`, as its ULog measured it in hover with the arena's vision
 #: (docs/px4.md, "Issue 25"): its velocity estimate off the truth by 0.026 / 0.083 / 0.054 m/s rms (north /
 #: east / down, heading north), correlated over ~0.5 s; its position estimate 0.8 / 2.1 cm rms off; the
-#: estimate trailing the truth by 70-85 ms in flight; true roll 1.2-1.6° and pitch 0.4-0.7° std, its roll
+#: estimate trailing the truth by 70-95 ms in flight; true roll 1.2-1.6° and pitch 0.4-0.7° std, its roll
 #: estimate 0.5-0.8° std off the truth; and the vehicle wandering 8-11 cm (p50) and 17-24 cm (max) around its
 #: hover point, along the roll axis far more than the pitch axis.  These constants reproduce that with the
 #: simulation's controllers (tests/unit/sim/test_sim_px4_parity.py): the size of PX4/SIH's wander, not its
