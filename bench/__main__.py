@@ -89,7 +89,8 @@ def bench(
         int | None,
         typer.Option(
             "--fleet",
-            help="Vehicles of the fleet point (deployed vision, every configuration; default 50, 0: skip).",
+            help="Vehicles of the fleet point (deployed vision, every configuration; default 50 unless "
+            "--vehicles is given, 0: skip).",
         ),
     ] = None,
     out: Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")] = Path(
@@ -139,6 +140,8 @@ def bench(
         changes["vehicle_mode"] = vehicle_mode
     if fleet is not None:
         changes["fleet"] = fleet
+    elif vehicles is not None:  # `-n 1` asks for one vehicle: the fleet of 50 only when asked for too
+        changes["fleet"] = 0
     if duration is not None:
         changes["duration"] = duration
     if warmup is not None:
