@@ -84,12 +84,13 @@ def _control(
     results: list[tuple[str, wire.CommandResult]] = []
     with open_bus(cfg.zenoh if cfg else None, global_bus()) as bus:
         deadline = time.monotonic() + timeout
-        # A fresh session may not know the recorders' queryables yet: ask again while nobody answered.
-        while not results and time.monotonic() < deadline:
+
+        def ask(cmd: wire.Command) -> list[tuple[str, wire.CommandResult]]:
+            out: list[tuple[str, wire.CommandResult]] = []
             replies = bus.session.get(
                 key,
-                payload=command.encode(),
-                encoding=zenoh.Encoding(command.encoding()),
+                payload=cmd.encode(),
+                encoding=zenoh.Encoding(cmd.encoding()),
                 timeout=timeout,
                 target=zenoh.QueryTarget.ALL,
                 consolidation=zenoh.ConsolidationMode.NONE,  # every recorder's answer, not the latest
@@ -99,11 +100,22 @@ def _control(
                 if reply.ok is not None:
                     src = str(reply.ok.key_expr)
                     try:
-                        results.append((src, wire.CommandResult.decode(reply.ok.payload.to_bytes(), src)))
+                        out.append((src, wire.CommandResult.decode(reply.ok.payload.to_bytes(), src)))
                     except ArenaError as exc:
-                        results.append((src, wire.CommandResult(False, "ERROR", f"bad reply: {exc}")))
-            if not results:
-                time.sleep(0.2)
+                        out.append((src, wire.CommandResult(False, "ERROR", f"bad reply: {exc}")))
+            return out
+
+        # A fresh session learns the recorders' queryables one by one: ping (harmless to repeat) until every
+        # recorder alive has answered, then send the order once, so that it reaches all of them.
+        alive = {k.split("/")[-2] for k in bus.alive(f"{keys.ROOT}/sys/alive/{target}/recorder")}
+        ping = wire.Command(op="ping", src="arena rec", timeout=timeout, t=wire.now_ns())
+        while time.monotonic() < deadline:
+            results = ask(ping)
+            if results and alive <= {src.rsplit("/", 1)[-1] for src, _ in results}:
+                break
+            time.sleep(0.2)
+        if op != "ping" and results:
+            results = ask(command)
     if not results:
         typer.echo(f"error: no recorder answers on {key}", err=True)
         raise typer.Exit(1)
