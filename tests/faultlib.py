@@ -77,6 +77,7 @@ def write_arena_config(
     name: str = "arena.toml",
     decimate: str = "downsampler",
     vehicle_mode: str = "",
+    fidelity: str = "ideal",
 ) -> Path:
     """Write a one-host (``test``) config with free ports; return its path.
 
@@ -86,7 +87,9 @@ def write_arena_config(
     ``endpoint`` is the router's (else a free port); ``multicast`` false streams NatNet by unicast (a
     fresh network namespace has no multicast route); ``decimate`` is ``[pipeline] decimate`` (with
     ``transform``, no host runs downsamplers); ``vehicle_mode`` is ``[zenoh] vehicle_mode`` (else the
-    default).  Without the ``mocap`` service nothing answers the clock check, so ``clock.require`` is then
+    default); ``fidelity`` is ``[sim] fidelity``: "ideal" by default, since these tests judge the arena's
+    safety logic with bounds an exact vehicle meets (PX4's wander: tests/unit/sim/test_sim_px4_parity.py).
+    Without the ``mocap`` service nothing answers the clock check, so ``clock.require`` is then
     false.
     """
     if decimate == "transform":
@@ -132,6 +135,7 @@ def write_arena_config(
             f"sim = {{ {sim} }}",
         ]
     lines += ["[sim]", f"speed = {speed}", f"mocap_rate = {mocap_rate}", f"noise_m = {noise_m}"]
+    lines.append(f'fidelity = "{fidelity}"')
     lines += ["[pipeline]", f'decimate = "{decimate}"']
     if recorder:
         lines += ["[recorder]", recorder]
@@ -332,6 +336,7 @@ class World:
                     position=(v.sim.start[0], v.sim.start[1], 0.0),
                     params=ARENA_PARAMS if params is None else params,
                     seed=index,
+                    ideal=cfg.sim.fidelity == "ideal",
                 )
                 if truth_rate > 0:
                     ap.on_tick = self._publisher(name, bus.stream_publisher(keys.truth(name), wire.Pose))

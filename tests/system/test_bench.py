@@ -141,6 +141,7 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
         peer_duration=0.5,
         peer_repeats=2,
         micro_scale=0.01,
+        fleet=0,  # the fleet of 50 is make bench's, not a tiny run's
         out_dir=tmp_path / "results",
         docs=docs,
         repo=REPO,

@@ -39,7 +39,10 @@ def _example(name: str) -> ModuleType:
 def sim_arena(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Arena]]:
     tmp = tmp_path_factory.mktemp("arena")
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    path = write_config(tmp, endpoint, n_vehicles=3, services=("router", "sim", "mocap", "transform"))
+    # The examples' figures are judged on exact vehicles (PX4's wander: tests/unit/sim/test_sim_px4_parity.py).
+    path = write_config(
+        tmp, endpoint, n_vehicles=3, services=("router", "sim", "mocap", "transform"), fidelity="ideal"
+    )
     log = open(tmp / "arena.log", "wb")  # noqa: SIM115 - closed in the finally below
     up = subprocess.Popen(
         [sys.executable, "-m", "arena_common.cli", "up", str(path), "--host", "test"],
