@@ -467,8 +467,8 @@ def run_arena(
         watcher = StatsWatcher(bus)
         if settings.hops:
             hop_watcher = HopWatcher(bus, names[0])
-        deployed_now = deployed_only and realistic_vision is not None
-        decimators(realistic_vision if deployed_now and realistic_vision is not None else VISION_RATE)
+        deployed_rate = realistic_vision if deployed_only else None  # the decimators start as deployed
+        decimators(deployed_rate or VISION_RATE)
         if decimate == "downsampler":
             procs.spawn(
                 "transform", "transform", python_module("services.frame_transform", *common), settings.repo
@@ -488,11 +488,11 @@ def run_arena(
             procs.mark()
             time.sleep(settings.idle)
             idle = procs.usage()
-        for rate in rates if not deployed_now else ():
+        for rate in rates if deployed_rate is None else ():
             measure(rate, chain_name, VISION_RATE, idle)
             idle = {}
         if realistic_vision is not None:
-            if not deployed_now:
+            if deployed_rate is None:
                 role = "downsampler" if decimate == "downsampler" else "transform"
                 for c in [c for c in procs.children if c.role == role]:
                     procs.stop(c)

@@ -83,6 +83,13 @@ PX4_SIH_WANDER = Wander(
 )
 
 
+def _ou_factors(dt: float, tau: float) -> tuple[float, float]:
+    """One step of ``dt`` of a first-order random process of correlation time ``tau``: the factor on its
+    value and the one on a unit normal draw scaled by its rms (``x = decay·x + spread·rms·N(0, 1)``)."""
+    decay = math.exp(-dt / tau)
+    return decay, math.sqrt(1.0 - decay * decay)
+
+
 class Estimator:
     """Stand-in for EKF2: IMU prediction corrected by external vision, barometer and magnetometer.
 
@@ -210,8 +217,7 @@ class Estimator:
             # ... but not exactly: the attitude controller holds the estimated tilt, so an error in it is a
             # real sideways force, which the position loop then fights (vision sees the vehicle move).
             et = self._wander_tilt
-            decay = math.exp(-dt / wander.tilt_tau_s)
-            spread = math.sqrt(1.0 - decay * decay)
+            decay, spread = _ou_factors(dt, wander.tilt_tau_s)
             for i in (0, 1):
                 et[i] = decay * et[i] + spread * wander.tilt_rms[i] * self.rng.gauss(0.0, 1.0)
             self.roll, self.pitch = roll + et[0], pitch + et[1]
@@ -246,9 +252,8 @@ class Estimator:
         wander = self.wander
         if wander is not None:
             ev, ep = self._wander_v, self._wander_p
-            decay = math.exp(-dt / wander.velocity_tau_s)
-            spread = math.sqrt(1.0 - decay * decay)
-            pull = dt / wander.position_tau_s
+            decay, spread = _ou_factors(dt, wander.velocity_tau_s)
+            pull = min(dt / wander.position_tau_s, 1.0)
             if on_ground:  # at rest the EKF knows the velocity is zero: the error dies away
                 ev[0], ev[1], ev[2] = ev[0] * decay, ev[1] * decay, ev[2] * decay
             else:  # the error is drawn along the heading's axes (forward, right, down), kept in NED
@@ -258,8 +263,8 @@ class Estimator:
                 ev[0] = decay * ev[0] + c * fwd - s * right
                 ev[1] = decay * ev[1] + s * fwd + c * right
                 ev[2] = decay * ev[2] + spread * rms[2] * gauss(0.0, 1.0)
-            for i in range(3):
-                ep[i] += (ev[i] - ep[i] / wander.position_tau_s) * dt if pull < 1.0 else -ep[i]
+            for i in range(3):  # the position error integrates the velocity's, pulled back to the fusion
+                ep[i] += ev[i] * dt - pull * ep[i]
             op = (op[0] + ep[0], op[1] + ep[1], op[2] + ep[2])
             ov = (ov[0] + ev[0], ov[1] + ev[1], ov[2] + ev[2])
         self.out_position = op
