@@ -589,6 +589,27 @@ class Queryable:
             pass
 
 
+def _open_session(conf: zenoh.Config) -> zenoh.Session:
+    """``zenoh.open`` in a thread of its own: a client waits up to 10 s for its router inside it, and the
+    caller's thread stays where a signal reaches it (Ctrl-C stops the process at once, not after that wait)."""
+    opened: list[zenoh.Session] = []
+    failed: list[Exception] = []
+
+    def run() -> None:
+        try:
+            opened.append(zenoh.open(conf))
+        except Exception as exc:
+            failed.append(exc)
+
+    thread = threading.Thread(target=run, name="zenoh-open", daemon=True)
+    thread.start()
+    while thread.is_alive():
+        thread.join(0.1)
+    if failed or not opened:
+        raise BusError(f"cannot open the Zenoh session: {failed[0] if failed else 'no session'}") from None
+    return opened[0]
+
+
 def open_bus(
     spec: ZenohSpec | None = None, options: BusOptions | None = None, *, connect_wait: float = 2.0
 ) -> Bus:
@@ -597,11 +618,7 @@ def open_bus(
     When it has endpoints to connect to, wait up to ``connect_wait`` seconds for the first link (it
     keeps trying in the background after that: services may start before the router).
     """
-    conf = zenoh_config(spec, options)
-    try:
-        session = zenoh.open(conf)
-    except Exception as exc:
-        raise BusError(f"cannot open the Zenoh session: {exc}") from None
+    session = _open_session(zenoh_config(spec, options))
     # A session that will connect somewhere is useful once linked: give it a moment (bounded), so that a
     # first query or presence look-up does not run before the first link is up.
     if (options and options.connect) or (spec and spec.connect):

@@ -1,4 +1,8 @@
+import signal
+import subprocess
+import sys
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -7,7 +11,7 @@ from arena_common.bus.session import Bus, BusOptions, Channel
 from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.runtime.service import running
-from tests.helpers import wait_for, write_config
+from tests.helpers import free_port, wait_for, write_config
 
 POSE = wire.Pose(t=1, p=(0.0, 0.0, -1.0), q=(1.0, 0.0, 0.0, 0.0), ok=True)
 
@@ -169,3 +173,22 @@ def test_a_vehicles_process_joins_as_a_client_when_the_config_says(
         assert len(routers) == 1 and peers == []  # one link: the router
         first = stats.get(timeout=10.0)
         assert first is not None and isinstance(first.payload, wire.Stats)
+
+
+def test_ctrl_c_stops_a_client_still_waiting_for_its_router(tmp_path: Path) -> None:
+    """A client waits up to 10 s for its router inside ``zenoh.open``: Ctrl-C must stop it at once anyway."""
+    path = write_config(tmp_path, f"tcp/127.0.0.1:{free_port()}")  # nobody listens there
+    path.write_text(
+        path.read_text().replace('mode = "peer"\n', 'mode = "peer"\nvehicle_mode = "client"\n', 1)
+    )
+    arena = str(Path(sys.executable).with_name("arena"))
+    proc = subprocess.Popen([arena, "run", "gateway", "--vehicle", "d1", "-c", str(path)], cwd=tmp_path)
+    try:
+        time.sleep(2.0)  # it is waiting for the router now (or still importing: Ctrl-C stops that too)
+        assert proc.poll() is None
+        started = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 130
+        assert time.monotonic() - started < 6.0  # not the 10 s of the router wait
+    finally:
+        proc.kill()
