@@ -109,7 +109,7 @@ def _control(
         # recorder alive has answered, then send the order once, so that it reaches all of them.
         alive = {k.split("/")[-2] for k in bus.alive(f"{keys.ROOT}/sys/alive/{target}/recorder")}
         ping = wire.Command(op="ping", src="arena rec", timeout=timeout, t=wire.now_ns())
-        while time.monotonic() < deadline:
+        while alive and time.monotonic() < deadline:  # no recorder alive: nobody to wait for
             results = ask(ping)
             if results and alive <= {src.rsplit("/", 1)[-1] for src, _ in results}:
                 break
