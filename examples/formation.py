@@ -31,7 +31,7 @@ def main(arena: Arena, names: list[str], radius: float = 1.0, height: float = 1.
     for step in range(turns + 1):
         targets = slots((0.0, 0.0), radius, step * (2 * math.pi / 3) / turns, len(names))
         # One argument per vehicle, in the swarm's order: every vehicle flies to its own slot at once.
-        swarm.run(lambda v, t: v.goto(t[0], t[1], -height, yaw=0.0, tolerance=0.15), targets)
+        swarm.run(lambda v, t: v.goto(t[0], t[1], -height, yaw=0.0), targets)
         print(f"formation step {step}: " + ", ".join(f"{v.name} {v.position}" for v in swarm))
     swarm.land()
 

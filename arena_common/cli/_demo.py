@@ -42,6 +42,7 @@ from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ArenaError
 from arena_common.runtime.options import load_config
 from arena_common.runtime.process import StopSignals, child_setup
+from arena_common.runtime.supervisor import endpoint_address
 
 console = Console()
 WATCH_3D = (
@@ -158,7 +159,7 @@ def formation_flight(
         say(f"formation step {step}/{steps}")
 
         def fly(v: Vehicle, t: dict[str, tuple[float, float]] = targets) -> None:
-            v.goto(t[v.name][0], t[v.name][1], -height, yaw=0.0, tolerance=0.2)
+            v.goto(t[v.name][0], t[v.name][1], -height, yaw=0.0)
 
         together(vehicles, fly, stop)
     say("landing")
@@ -296,6 +297,34 @@ def fleet_config(base: Path, n: int, out: Path) -> tuple[Path, dict[str, tuple[f
     out.write_text(header + to_toml(doc) + "\n")
     load_config(out)  # what we wrote is a valid config
     return out, dict(zip(names, spots, strict=True))
+
+
+def _wait_router(
+    cfg: ArenaConfig, up: subprocess.Popen[bytes], stop: threading.Event, deadline: float
+) -> str:
+    """Wait until an endpoint the demo's session connects to (``zenoh.connect``) accepts a TCP connection:
+    the router the supervisor starts first is listening.  ``""`` once one does (or when none can be
+    probed: UDP, a Unix socket), or on ``stop``; otherwise why not, naming what was waited for.
+
+    The session is a Zenoh client, which gives up after 10 s without its router; the supervisor's router
+    listens 3.6 s after the demo starts it on an idle 2-core machine, 13.4 s with four CPU burners beside
+    it (measured): so the session opens only once the router listens, within the arena's ``deadline``.
+    """
+    probes = [(e, a) for e in cfg.zenoh.connect if (a := endpoint_address(e)) is not None]
+    if not probes:
+        return ""
+    what = " or ".join(e for e, _ in probes)
+    started = time.monotonic()
+    while not stop.is_set():
+        if up.poll() is not None:
+            return f"the supervisor exited ({up.returncode}) before the router accepted on {what}"
+        for _, address in probes:
+            with contextlib.suppress(OSError), socket.create_connection(address, timeout=0.5):
+                return ""
+        if time.monotonic() >= deadline:
+            return f"the router did not accept on {what} within {time.monotonic() - started:.0f} s"
+        stop.wait(0.1)
+    return ""
 
 
 def _wait_ready(arena: Arena, cfg: ArenaConfig, stop: threading.Event, say: Say, timeout: float) -> bool:
@@ -476,7 +505,18 @@ def _run(
     say = Say(console)
     say(f"arena starting (pid {up.pid}, logs in {log})")
     failed: list[BaseException] = []
+    deadline = time.monotonic() + ready_timeout  # the whole come-up: the router, then every vehicle ready
+    problem = _wait_router(cfg, up, stop, deadline)
+    if stop.is_set():  # stopped before anything could fly: stop the arena
+        say("stopping the arena" + (" at once" if hurry.is_set() else ""))
+        _stop(up, hurry)
+        logf.close()
+        with contextlib.suppress(OSError, ValueError):  # the terminal may be gone (SIGHUP)
+            console.print(f"arena stopped (supervisor {up.returncode})")
+        return
     try:
+        if problem:
+            raise ArenaError(problem)
         arena = Arena(cfg, name="arena-demo")
     except ArenaError as exc:
         _stop(up, hurry)
@@ -488,7 +528,7 @@ def _run(
 
     def program() -> None:
         try:
-            if not _wait_ready(arena, cfg, stop, say, ready_timeout):
+            if not _wait_ready(arena, cfg, stop, say, max(deadline - time.monotonic(), 0.0)):
                 if stop.is_set():
                     return
                 raise ArenaError(f"the arena did not come up within {ready_timeout:.0f} s (see {log})")

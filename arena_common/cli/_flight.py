@@ -17,6 +17,7 @@ from arena_common.cli._globals import config as global_config
 from arena_common.cli._globals import current as global_options
 from arena_common.client import Arena, Vehicle
 from arena_common.core import keys, ops, wire
+from arena_common.core.arrival import ARRIVAL_TOLERANCE
 from arena_common.core.errors import ArenaError
 
 console = Console()
@@ -291,7 +292,9 @@ def goto(
     east: float,
     down: float,
     yaw: Annotated[float | None, typer.Option(help="Yaw (degrees).")] = None,
-    tolerance: Annotated[float, typer.Option(help="Arrival tolerance (m).")] = 0.1,
+    tolerance: Annotated[
+        float, typer.Option(help="Arrival tolerance (m) of the position averaged over the last second.")
+    ] = ARRIVAL_TOLERANCE,
     timeout: Timeout = 30.0,
 ) -> None:
     """Fly to NORTH EAST DOWN (arena frame, metres; down is negative above the floor)."""

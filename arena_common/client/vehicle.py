@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -48,6 +47,7 @@ from arena_common.client.types import (
     Status,
 )
 from arena_common.core import keys, ops, wire
+from arena_common.core.arrival import ARRIVAL_TOLERANCE, ARRIVAL_WINDOW, HEIGHT_TOLERANCE, Arrival
 from arena_common.core.errors import (
     CommandRejected,
     CommandTimeout,
@@ -343,19 +343,38 @@ class Vehicle:
         return self.estimator_topic.on(fn)
 
     # -- waiting --------------------------------------------------------------------------------------
-    def wait_until(self, predicate: Callable[[Vehicle], bool], timeout: float = 10.0, what: str = "") -> None:
-        """Block until ``predicate(self)`` holds; :class:`CommandTimeout` after ``timeout`` seconds."""
+    def wait_until(
+        self,
+        predicate: Callable[[Vehicle], bool],
+        timeout: float = 10.0,
+        what: str = "",
+        detail: Callable[[], str] | None = None,
+    ) -> None:
+        """Block until ``predicate(self)`` holds; :class:`CommandTimeout` after ``timeout`` seconds (its
+        text ends with ``detail()`` when given: how far from it the vehicle is)."""
         deadline = time.monotonic() + timeout
         with self._cond:
             while not predicate(self):
                 left = deadline - time.monotonic()
                 if left <= 0:
+                    more = f": {detail()}" if detail is not None else ""
                     raise CommandTimeout(
-                        f"{self.name}: {what or 'condition'} not reached within {timeout:.1f} s",
+                        f"{self.name}: {what or 'condition'} not reached within {timeout:.1f} s{more}",
                         result="TIMEOUT",
                         drone=self.name,
                     )
                 self._cond.wait(min(left, 0.1))
+
+    def wait_arrival(self, arrival: Arrival, timeout: float, what: str) -> None:
+        """Block until ``arrival`` judges the vehicle arrived (its position averaged over the arrival
+        window, :mod:`arena_common.core.arrival`); :class:`CommandTimeout` after ``timeout`` seconds,
+        naming how far the vehicle is."""
+
+        def arrived(v: Vehicle) -> bool:
+            arrival.add(time.monotonic(), v.position)
+            return arrival.arrived()
+
+        self.wait_until(arrived, timeout, what, arrival.describe)
 
     def _catch_up(self, t_ns: int, timeout: float = 1.0) -> None:
         """Wait (briefly) for a state the gateway stamped at or after ``t_ns`` (its clock): the attributes
@@ -422,9 +441,12 @@ class Vehicle:
         """Cut the motors now, in the air too (forced disarm)."""
         self.command("kill", timeout)
 
-    def takeoff(self, height: float = 1.0, timeout: float = 30.0, tolerance: float = 0.1) -> float:
-        """Take off to ``height`` metres above the floor; return once within ``tolerance`` of it, with the
-        seconds (arena time) it took from the command.
+    def takeoff(
+        self, height: float = 1.0, timeout: float = 30.0, tolerance: float = HEIGHT_TOLERANCE
+    ) -> float:
+        """Take off to ``height`` metres above the floor; return once arrived there (the height averaged
+        over the last second within ``tolerance``: :mod:`arena_common.core.arrival`), with the seconds
+        (arena time) it took from the command.
 
         PX4 v1.16 takes its time (docs/px4.md): ~4 s on the ground (motor spool-up, thrust ramp), then it
         reports Hold ``NAV_MC_ALT_RAD`` (0.8 m) short of the height and closes the rest slowly — about
@@ -432,12 +454,9 @@ class Vehicle:
         """
         clock = self.arena.clock
         started = clock.now()
+        judge = Arrival((0.0, 0.0, -float(height)), tolerance, clock.wall(ARRIVAL_WINDOW), axes=(2,))
         self.command("takeoff", min(timeout, 10.0), height=float(height))
-        self.wait_until(
-            lambda v: (p := v.position) is not None and abs(-p[2] - height) <= tolerance,
-            clock.wall(timeout),
-            f"height {height} m (within {tolerance} m)",
-        )
+        self.wait_arrival(judge, clock.wall(timeout), f"height {height} m")
         took = clock.now() - started
         log.info("%s: took off to %.2f m in %.1f s", self.name, height, took)
         return took
@@ -467,12 +486,12 @@ class Vehicle:
         east: float,
         down: float,
         yaw: float | None = None,
-        tolerance: float = 0.1,
+        tolerance: float = ARRIVAL_TOLERANCE,
         timeout: float = 30.0,
         duration: float | None = None,
     ) -> None:
-        """Fly to a point of the arena (NED, metres) and wait until within ``tolerance``; the gateway then
-        holds it.
+        """Fly to a point of the arena (NED, metres) and wait until arrived: the position averaged over the
+        last second within ``tolerance`` (:mod:`arena_common.core.arrival`); the gateway then holds it.
 
         Without ``duration`` the gateway flies there at its own speed (``goto_speed``).  With ``duration``
         (seconds of arena time) the vehicle follows a smooth minimum-jerk path that arrives then, streamed
@@ -491,11 +510,9 @@ class Vehicle:
             if yaw is not None:
                 args["yaw"] = float(yaw)
             self.command("goto", min(timeout, 10.0), **args)
-        self.wait_until(
-            lambda v: (p := v.position) is not None and math.dist(p, target) <= tolerance,
-            self.arena.clock.wall(timeout),
-            f"position {target}",
-        )
+        clock = self.arena.clock
+        judge = Arrival(target, tolerance, clock.wall(ARRIVAL_WINDOW))
+        self.wait_arrival(judge, clock.wall(timeout), f"position {target}")
 
     def follow(self, trajectory: Trajectory, rate: float = 30.0) -> None:
         """Fly ``trajectory`` (from its start, which should be near the vehicle) in an offboard block and

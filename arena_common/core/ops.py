@@ -141,8 +141,8 @@ _VEHICLE: tuple[Op, ...] = (
         (
             Arg("p", "vec3", "north, east, down in the arena frame", "m"),
             Arg("yaw", "number", "heading (default: the current one)", "rad", None),
-            Arg("tol", "number", "arrival tolerance, positive (default: the gateway's)", "m", None),
-            Arg("wait", "flag", "answer only once within tol", "", False),
+            Arg("tol", "number", "tolerance of the position averaged over 1 s (default 0.3)", "m", None),
+            Arg("wait", "flag", "answer only once arrived (core.arrival)", "", False),
         ),
         client="goto",
     ),

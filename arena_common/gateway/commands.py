@@ -17,6 +17,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from arena_common.core import ops, wire
+from arena_common.core.arrival import ARRIVAL_TOLERANCE, Arrival
 from arena_common.core.config import ArenaSpec, VehicleSpec
 from arena_common.gateway.events import EventSink
 from arena_common.gateway.origin import GlobalOrigin
@@ -74,7 +75,7 @@ class CommandExecutor:
         events: EventSink,
         origin: GlobalOrigin | None = None,
         vision_stale: float = 0.2,
-        goto_tolerance: float = 0.1,
+        goto_tolerance: float = ARRIVAL_TOLERANCE,
         clock_problem: Callable[[], str | None] | None = None,
     ) -> None:
         self.vehicle = vehicle
@@ -288,12 +289,16 @@ class CommandExecutor:
                 return res
         value: dict[str, Any] = {"goal": list(goal)}
         if wait:
-            reached = self.state.wait(lambda: self._distance(goal) <= tol, deadline)
+            judge = Arrival(goal, tol)
+
+            def arrived() -> bool:
+                judge.add(time.monotonic(), self.state.position(time.monotonic()))
+                return judge.arrived()
+
+            reached = self.state.wait(arrived, deadline)
             value["dist"] = self._distance(goal)
             if not reached:
-                return _result(
-                    "IN_PROGRESS", f"still {value['dist']:.2f} m from the goal; holding it", **value
-                )
+                return _result("IN_PROGRESS", f"not arrived: {judge.describe()}; holding the goal", **value)
         return _result("ACCEPTED", **value)
 
     def _distance(self, goal: tuple[float, float, float]) -> float:

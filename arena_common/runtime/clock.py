@@ -16,8 +16,12 @@ host's offset with request/answer exchanges:
   of the error (the uncertainty), never a guess;
 - an exchange whose interval misses the current estimate means a clock stepped (NTP, an operator):
   the estimate starts again from it (counted in ``steps``);
-- a service on the mocap host itself (the answer names the reference's host, and it is ours) reads the
-  same wall clock: its offset is exactly 0, with no uncertainty, however slow the exchanges.
+- a service on the mocap host itself reads the same wall clock: its offset is exactly 0, with no
+  uncertainty, however slow the exchanges.  It is on that host when the answer names the reference's
+  host and it is ours, or when the answer comes from this very computer (the same kernel boot id, so the
+  same ``CLOCK_REALTIME``: every process of a one-computer arena, whatever its config calls the hosts)
+  and every exchange agrees with an offset of 0 — a process whose clock is faked (``faketime``) on the
+  same computer fails that and is measured as any other.
 
 :class:`ClockSync` runs the exchanges in its own thread (every ``clock.period`` s), publishes the
 estimate as :class:`~arena_common.core.wire.ClockOffset` on ``arena/sys/clock/<host>/<service>``, and
@@ -33,6 +37,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from arena_common.bus.session import Bus, Lane
@@ -42,6 +47,18 @@ from arena_common.core.config import ClockSpec
 __all__ = ["ClockStatus", "ClockSync", "Estimate", "OffsetEstimator", "describe_offset"]
 
 WINDOW = 16  # exchanges kept for the estimate
+_BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
+
+
+def machine_id() -> str:
+    """This computer's clock identity: the kernel's boot id (Linux), else "" (never the same as another's)."""
+    try:
+        return _BOOT_ID.read_text().strip()
+    except OSError:
+        return ""
+
+
+MACHINE = machine_id()
 SAME_HOST_EVERY = 10  # on the mocap host, exchange once in this many periods (the offset is 0 anyway)
 
 
@@ -172,6 +189,7 @@ class ClockSync:
         reference: bool = False,
         clock_ns: Callable[[], int] = time.time_ns,
         log: logging.Logger | None = None,
+        machine: str = MACHINE,
     ) -> None:
         self.bus = bus
         self.host = host
@@ -182,6 +200,8 @@ class ClockSync:
         self.log = log or logging.getLogger(f"arena.clock.{service}")
         self.estimator = OffsetEstimator(WINDOW, self.spec.drift_ppm)
         self.ref = host if reference else ""
+        self.machine = machine  # the computer's clock identity (:func:`machine_id`)
+        self._one_clock: bool | None = None  # the reference runs on this computer, on this clock
         self.answered = 0
         self.unanswered = 0
         self.last_reason = ""
@@ -201,7 +221,9 @@ class ClockSync:
         if cmd.op != "time":
             return wire.CommandResult(False, "ERROR", f"{key} answers op 'time' only, not {cmd.op!r}")
         return wire.CommandResult(
-            True, "ACCEPTED", value={"t2": t2, "host": self.host, "t3": self.clock_ns()}
+            True,
+            "ACCEPTED",
+            value={"t2": t2, "host": self.host, "machine": self.machine, "t3": self.clock_ns()},
         )
 
     # -- measuring -----------------------------------------------------------------------------------
@@ -226,7 +248,9 @@ class ClockSync:
                 if self.ref:
                     self.log.warning("the mocap time reference moved from %s to %s", self.ref, ref)
                 self.estimator.reset()
+                self._one_clock = None
                 self.ref = ref
+            self._judge_one_clock(result.value.get("machine"), t1, t2, t3, t4)
             steps = self.estimator.steps
             refused = self.estimator.add(t1, t2, t3, t4, mono)
             self._cached = None
@@ -236,11 +260,27 @@ class ClockSync:
             self.log.warning("a clock stepped (the exchange contradicts the estimate): measuring again")
         return refused
 
+    def _judge_one_clock(self, machine: object, t1: int, t2: int, t3: int, t4: int) -> None:
+        """Note whether this exchange shows the reference on this computer's clock (under the lock)."""
+        here = isinstance(machine, str) and machine != "" and machine == self.machine
+        agrees = t3 - t4 <= 0 <= t2 - t1  # an offset of 0 lies within this exchange's interval
+        if here and agrees:
+            if self._one_clock is None:
+                self._one_clock = True
+        elif self._one_clock is not False:
+            if here:
+                self.log.warning(
+                    "the mocap time reference runs on this computer, but its clock disagrees with ours "
+                    "(a faked or stepped clock): measuring the offset"
+                )
+            self._one_clock = False
+
     @property
     def same_host(self) -> bool:
-        """Whether the reference answered from this very host: one wall clock, so the offset is exactly 0
-        (no estimate, whatever the round trips through a busy bus)."""
-        return self.ref == self.host
+        """Whether the reference answered from this very host (by name, or the same computer's clock):
+        one wall clock, so the offset is exactly 0 (no estimate, whatever the round trips through a busy
+        bus)."""
+        return self.ref == self.host or bool(self._one_clock)
 
     def offset_ns(self) -> int | None:
         """The mocap host's clock minus ours now, ns (None while unknown); cheap, for every pose."""

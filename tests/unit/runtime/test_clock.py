@@ -162,7 +162,7 @@ def test_an_uncertain_offset_is_a_problem_naming_the_clock(bus_factory: Callable
     # No exchange over a real network answers within 1 µs: the bound is always above it.
     spec = ClockSpec(period=0.1, max_uncertainty=1e-6)
     ref = ClockSync(bus_factory(), "ground", "mocap", spec, reference=True).start()
-    sync = ClockSync(bus_factory(), "cc1", "gateway.d1", spec).start()
+    sync = ClockSync(bus_factory(), "cc1", "gateway.d1", spec, machine="another computer").start()
     try:
         wait_for(lambda: sync.answered >= 2, 5.0, what="two answers")
         st = sync.status()
@@ -190,6 +190,28 @@ def test_on_the_mocap_host_itself_the_offset_is_exactly_zero(bus_factory: Callab
     finally:
         local.close()
         ref.close()
+
+
+def test_one_computer_is_one_clock_whatever_its_hosts_are_called(bus_factory: Callable[[], Bus]) -> None:
+    """Every process of a one-computer arena reads one wall clock, even where the config names the hosts
+    apart ("vm", "ground"): offset 0 ± 0 and no problem, however slow the exchanges (the limit of 1 µs
+    fails any measured offset); a process whose clock is faked on the same computer is measured."""
+    spec = ClockSpec(period=0.1, max_uncertainty=1e-6)
+    ref = ClockSync(bus_factory(), "ground", "mocap", spec, reference=True).start()
+    here = ClockSync(bus_factory(), "vm", "gateway.d1", spec).start()
+    faked = ClockSync(bus_factory(), "vm", "gateway.d2", ClockSpec(period=0.1), clock_ns=_skewed(5.0)).start()
+    try:
+        wait_for(lambda: here.answered >= 3 and faked.answered >= 3, 5.0, what="three answers each")
+        st = here.status()
+        assert here.same_host and st.state == "ok" and st.problem is None and st.warning is None
+        assert st.estimate is not None and st.estimate.offset_ns == 0 and st.estimate.unc_ns == 0
+        assert here.offset_ns() == 0 and here.payload().state == "ok"
+        fst = faked.status()
+        assert not faked.same_host and fst.estimate is not None
+        assert abs(fst.estimate.offset + 5.0) <= fst.estimate.unc + 2e-6
+    finally:
+        for s in (here, faked, ref):
+            s.close()
 
 
 def test_the_reference_refuses_other_ops(bus_factory: Callable[[], Bus]) -> None:
