@@ -36,8 +36,13 @@ test-system: $(STAMP)
 # The typed tier: every command of README.md, docs/, `arena --help` and the systemd units, run as a user
 # types it (the real console script, shared options before and after, a config named on the line), and
 # what each promises: its ports, its vehicles, its errors, nothing left running when its terminal closes.
+# Two workers: unlike the unit tests, most of these run a whole arena each (steady ~0.35 of a core for one
+# vehicle, ~6 CPU-seconds to start, more flying or benchmarking); the tier takes ~410 CPU-seconds.  At -n 3
+# it averaged 1.1 cores, the 2-core machine was saturated 86 % of the time and the demo tests ran 1.1-2.5x
+# slower than at -n 2 (0.6 cores on average), which leaves a core for the work beside it.
+TYPED_JOBS ?= 2
 test-typed: $(STAMP)
-	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n 3 --dist worksteal -m typed tests/typed
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n $(TYPED_JOBS) --dist worksteal -m typed tests/typed
 
 # The real-PX4 tier: PX4 v1.16 SITL (PX4_SITL_DIR, else ../shared/px4-sitl) flown through the arena.
 test-px4: $(STAMP)

@@ -269,6 +269,33 @@ def _recorder(scale: float) -> dict[str, float]:
     return out
 
 
+def _fleet(scale: float) -> dict[str, dict[str, float]]:
+    """What keeping vehicles apart costs one gateway: a fleet message of N vehicles decoded, taken and
+    judged (:class:`~arena_common.gateway.separation.Separation`), at the transform's 10 Hz."""
+    from arena_common.gateway.separation import Separation
+    from arena_common.pipeline.transform import FLEET_RATE
+
+    out: dict[str, dict[str, float]] = {}
+    for n in (10, 20, 50):
+        fleet = wire.Fleet(
+            t=1,
+            b=tuple(
+                wire.FleetVehicle(f"d{i + 1}", (1.4 * (i % 10), 1.4 * (i // 10), -1.0), (0.1, 0.0, 0.0))
+                for i in range(n)
+            ),
+        )
+        raw = fleet.encode()
+        sep = Separation("d1", 0.6)
+
+        def one(raw: bytes = raw, sep: Separation = sep) -> None:
+            sep.update(wire.Fleet.decode(raw, keys.FLEET))
+            sep.closing()
+
+        us = per_call_us(one, int(2000 * scale))
+        out[f"{n} vehicles"] = {"bytes": len(raw), "us": us, "cpu_pct": us * FLEET_RATE * 1e-4}
+    return out
+
+
 def run_micro(scale: float = 1.0) -> dict[str, Any]:
     """Every micro-benchmark; a dict of sections (µs per call unless the name says otherwise)."""
     return {
@@ -278,4 +305,5 @@ def run_micro(scale: float = 1.0) -> dict[str, Any]:
         "mavlink_us": _mavlink(scale),
         "wire_us": _wire(scale),
         "recorder": _recorder(scale),
+        "fleet": _fleet(scale),
     }

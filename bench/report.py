@@ -196,6 +196,14 @@ def micro_rows(micro: dict[str, Any]) -> list[list[str]]:
         )
     for name, v in (micro.get("recorder") or {}).items():
         rows.append(["recorder (Pose samples)", name, f"{v:,.0f}" if "messages" in name else f"{v:.2f}"])
+    for name, v in (micro.get("fleet") or {}).items():
+        rows.append(
+            [
+                "fleet message (separation), per gateway",
+                f"{name} ({v['bytes']:.0f} B at 10 Hz)",
+                f"{v['us']:.1f} µs each: {v['cpu_pct']:.3f} % of a core",
+            ]
+        )
     return rows
 
 

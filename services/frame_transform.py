@@ -33,7 +33,7 @@ from arena_common.bus.session import BusOptions, Lane, Publisher, typed
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.geometry.frames import FrameError
-from arena_common.pipeline.transform import Decimators, PoseConverter, frame_transform
+from arena_common.pipeline.transform import Decimators, FleetPublisher, PoseConverter, frame_transform
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.service import running
 
@@ -64,6 +64,7 @@ def main(
         decimators = Decimators(svc, cfg) if cfg.pipeline.decimate == "transform" else None
         if decimators is not None:
             svc.log.info("decimating %d vehicles into vision in-process", len(decimators.filters))
+        fleet = FleetPublisher(svc.bus.stream_publisher(keys.FLEET, wire.Fleet, Lane.CONTROL))
         sub = svc.bus.subscribe(SUBSCRIPTION, capacity=QUEUE_CAPACITY, ring=False)
         publishers: dict[str, Publisher[wire.Pose]] = {}
         shed_ns = int(cfg.pipeline.shed_after * 1e9)
@@ -90,6 +91,7 @@ def main(
                 except FrameError as exc:
                     svc.reject("bad_pose", f"{item.key}, body {body.id} of {drone}: {exc}")
                     continue
+                fleet.offer(drone, pose)
                 if decimators is not None:
                     decimators.offer(drone, pose)  # vision first: it is the latency-critical output
                     if behind:
@@ -102,6 +104,8 @@ def main(
                 svc.stats.count("out")
                 if not pose.ok:
                     svc.stats.count("invalid")
+            if fleet.tick(time.monotonic_ns()) is not None:
+                svc.stats.count("fleet")
             svc.stats.latency((time.time_ns() - item.t_recv) * 1e-9)
 
 

@@ -25,6 +25,7 @@ from arena_common.core import keys
 from arena_common.core.config import ArenaConfig
 from arena_common.recording.mcap import Recorder, Sample
 from arena_common.runtime.command import Shared, service_command
+from arena_common.runtime.process import lead_own_session
 from arena_common.runtime.service import running, yield_cpu
 
 QUEUE_CAPACITY = 50_000  # samples; ≈10 s of a busy arena
@@ -112,6 +113,7 @@ def cli(
     name: Annotated[str | None, typer.Option("--name", help="Name of the first file (default: rec).")] = None,
 ) -> None:
     """Record the bus into MCAP files (Foxglove, PlotJuggler, `arena rec info`)."""
+    lead_own_session()
     yield_cpu(logging.getLogger("arena.recorder"))
     main(shared.config, shared.bus, host=shared.host, directory=directory, name=name)
 

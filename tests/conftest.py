@@ -86,7 +86,9 @@ def bus_factory(router_endpoint: str) -> Iterator[Callable[[], Bus]]:
 def arena_config(tmp_path: Path, router_endpoint: str) -> Callable[..., ArenaConfig]:
     """Build a config with private ports: ``arena_config(n_vehicles=3, speed=2.0)``."""
 
-    def make(n_vehicles: int = 1, extra: str = "", **sim: Any) -> ArenaConfig:
-        return config_mod.load(write_config(tmp_path, router_endpoint, n_vehicles, extra, **sim))
+    def make(n_vehicles: int = 1, extra: str = "", spacing: float = 1.0, **sim: Any) -> ArenaConfig:
+        return config_mod.load(
+            write_config(tmp_path, router_endpoint, n_vehicles, extra, spacing=spacing, **sim)
+        )
 
     return make

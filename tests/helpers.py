@@ -172,9 +172,11 @@ def write_config(
     n_vehicles: int = 1,
     extra: str = "",
     services: tuple[str, ...] = ("sim", "mocap", "transform"),
+    spacing: float = 1.0,
     **sim: Any,
 ) -> Path:
-    """Write an arena config whose every port is free and private to this test."""
+    """Write an arena config whose every port is free and private to this test; the vehicles start in
+    a line along north from -1 m, ``spacing`` apart."""
     cmd_port, data_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     lines = [
         "[arena]",
@@ -199,7 +201,7 @@ def write_config(
             f'rigid_body = "d{i + 1}"',
             f'mavlink = "udpin:127.0.0.1:{port}"',
             f"system_id = {i + 1}",
-            f"sim = {{ start = [{i * 1.0 - 1.0}, 0.0] }}",
+            f"sim = {{ start = [{i * spacing - 1.0}, 0.0] }}",
         ]
     if sim:
         lines.append("[sim]")

@@ -8,7 +8,12 @@
   the rms error at that shift and at none (airborne part of the flight);
 - **estimate vs vision**: the same against the vision PX4 received (``vehicle_visual_odometry`` at its
   ``timestamp_sample``): how far PX4's estimate trails the mocap pose;
-- **vision vs truth**: the vision's own lag and error as PX4 stamped it;
+- **vision vs truth**: the vision's own lag and error as PX4 stamped it (the arena's stamp mapped by PX4's
+  TIMESYNC estimate), and the same with PX4's TIMESYNC tracking error taken out (**synced**): the arena's
+  stamps and the truth's own delivery alone;
+- **TIMESYNC error**: PX4's offset estimate minus the offsets its accepted TIMESYNC answers observed
+  (``timesync_status``, logged at 1 Hz; a running median of 5), p50 and largest magnitude over the airborne
+  vision: how far PX4 itself shifted the stamps;
 - **innovations**: rms innovation and p95 test ratio of the EV (or GNSS) position fusion
   (``estimator_aid_src_ev_pos`` / ``estimator_aid_src_gnss_pos``);
 - **output predictor**: ``estimator_status.output_tracking_error[2]`` (position; [0] is angular, [1]
@@ -48,8 +53,11 @@ TOPICS = (
     "estimator_aid_src_ev_pos",
     "estimator_aid_src_gnss_pos",
     "trajectory_setpoint",
+    "timesync_status",
 )
 NAV_OFFBOARD = 14
+MAVLINK_TIMESYNC = 1  # timesync_status.source_protocol of PX4's MAVLink links
+MAX_RTT_US = 10_000  # PX4 takes a TIMESYNC answer as a sample only below this round trip (Timesync.hpp)
 REQUIRED = ("vehicle_local_position", "vehicle_local_position_groundtruth", "vehicle_status")
 
 Arrays = Mapping[str, np.ndarray]
@@ -88,6 +96,8 @@ class Report:
     offboard_max_m: float | None = None
     offboard_end_p50_m: float | None = None
     offboard_end_max_m: float | None = None
+    vision_vs_truth_synced: Lag | None = None
+    timesync_error_ms: tuple[float, float] | None = None  # p50, largest magnitude
 
 
 def xyz(data: Arrays, keys: Sequence[str] = ("x", "y", "z")) -> np.ndarray:
@@ -136,6 +146,31 @@ def timesync_start(
     from when PX4's TIMESYNC had converged (before, PX4 stamps vision with its arrival time)."""
     late = np.nonzero((timestamp - timestamp_sample) > gap_us)[0]
     return float(timestamp[late[0]]) * 1e-6 if len(late) else None
+
+
+def timesync_error(ts: Arrays, window: int = 5) -> tuple[np.ndarray, np.ndarray] | None:
+    """PX4's TIMESYNC tracking error (times, errors; µs): at each logged answer PX4 took as a sample (a round
+    trip under :data:`MAX_RTT_US`), its offset estimate minus the offset that answer observed, as a running
+    median of ``window`` answers.  Positive: PX4 maps a remote stamp later than its answers say.
+
+    PX4 (``src/lib/timesync/Timesync.cpp``) maps a vision stamp as ``time_usec + estimated_offset`` and
+    observes ``(ts1 + now) / 2 - tc1`` on each answer; after its 500 first answers it follows them with
+    gains of 0.003 (at 10 Hz: ~33 s), which follow a steady skew but not a change of it.  SITL's clock runs
+    slower as the machine is loaded (0.8 % on this 2-core machine, docs/px4.md): PX4's filter, run on a
+    change of that rate by 0.1 % (0.2 %), ends up to 18 ms (36 ms) off within the 45 s after it.
+    """
+    if not len(ts.get("timestamp", ())):
+        return None
+    keep = (np.asarray(ts["remote_timestamp"], float) > 0) & (
+        np.asarray(ts["round_trip_time"], float) < MAX_RTT_US
+    )
+    if keep.sum() < window:
+        return None
+    t = np.asarray(ts["timestamp"], float)[keep]
+    raw = (np.asarray(ts["estimated_offset"], float) - np.asarray(ts["observed_offset"], float))[keep]
+    half = window // 2
+    smooth = np.array([np.median(raw[max(0, i - half) : i + half + 1]) for i in range(len(raw))])
+    return t, smooth
 
 
 def hover_window(
@@ -243,8 +278,8 @@ def analyse(topics: Mapping[str, Arrays], hover: tuple[float, float] | None = No
     lp_hover = (t_lp >= window[0]) & (t_lp <= window[1])
     est_truth_hover = best_lag(t_lp[lp_hover], est[lp_hover], t_gt, truth)
 
-    est_vision = vision_truth = None
-    ts_from = None
+    est_vision = vision_truth = vision_synced = None
+    ts_from = ts_error = None
     vo = topics.get("vehicle_visual_odometry")
     if vo is not None and len(vo["timestamp"]) > 10:
         t_vo = np.asarray(vo["timestamp"], float)
@@ -255,6 +290,16 @@ def analyse(topics: Mapping[str, Arrays], hover: tuple[float, float] | None = No
         vflying = np.interp(t_vs, t_gt, -truth[:, 2]) > 0.3
         vision_truth = best_lag(t_vs[vflying], vis[vflying], t_gt, truth, tuple(range(-50, 105, 1)))
         ts_from = timesync_start(t_vo, t_vs)
+        found_error = timesync_error(topics["timesync_status"]) if "timesync_status" in topics else None
+        if found_error is not None and ts_from is not None:
+            # Only once PX4 used its estimate (converged); before, its stamps were arrival times.
+            synced = vflying & (t_vo >= ts_from * 1e6)
+            error = np.interp(t_vs, *found_error)
+            if synced.sum() >= 10:
+                vision_synced = best_lag(
+                    t_vs[synced] - error[synced], vis[synced], t_gt, truth, tuple(range(-50, 105, 1))
+                )
+                ts_error = (float(np.median(error[synced])) * 1e-3, float(np.abs(error[synced]).max()) * 1e-3)
 
     source = innov_rms = ratio95 = None
     for name, label in (("estimator_aid_src_ev_pos", "ev"), ("estimator_aid_src_gnss_pos", "gnss")):
@@ -313,6 +358,8 @@ def analyse(topics: Mapping[str, Arrays], hover: tuple[float, float] | None = No
         offboard_max_m=off[0] if off else None,
         offboard_end_p50_m=off[1] if off else None,
         offboard_end_max_m=off[2] if off else None,
+        vision_vs_truth_synced=vision_synced,
+        timesync_error_ms=ts_error,
     )
 
 
@@ -323,7 +370,14 @@ def read_ulog(path: str | Path) -> dict[str, dict[str, np.ndarray]]:
     ulog = ULog(str(path), list(TOPICS))
     out: dict[str, dict[str, np.ndarray]] = {}
     for d in ulog.data_list:
-        if d.multi_id == 0:
+        if d.name == "timesync_status":  # one instance per link that got answers: the MAVLink one with most
+            proto = d.data.get("source_protocol")
+            if proto is not None and not np.all(np.asarray(proto) == MAVLINK_TIMESYNC):
+                continue
+            if d.name in out and len(out[d.name]["timestamp"]) >= len(d.data["timestamp"]):
+                continue
+            out[d.name] = dict(d.data)
+        elif d.multi_id == 0:
             out[d.name] = dict(d.data)
     missing = [t for t in REQUIRED if t not in out]
     if missing:
@@ -350,7 +404,13 @@ def render(report: Report) -> str:
         _lag_text("estimate vs truth (hover)", r.estimate_vs_truth_hover),
         _lag_text("estimate vs vision", r.estimate_vs_vision),
         _lag_text("vision vs truth", r.vision_vs_truth),
+        _lag_text("vision vs truth, PX4's TIMESYNC error taken out", r.vision_vs_truth_synced),
     ]
+    if r.timesync_error_ms is not None:
+        lines.append(
+            f"PX4's TIMESYNC estimate minus its answers (airborne): p50 {r.timesync_error_ms[0]:.1f} ms, "
+            f"largest {r.timesync_error_ms[1]:.1f} ms"
+        )
     if r.innovation_source is not None and r.innovation_rms_m is not None and r.test_ratio_p95 is not None:
         lines.append(
             f"{r.innovation_source} position innovations: rms {r.innovation_rms_m * 100:.1f} cm, "

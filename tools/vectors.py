@@ -338,6 +338,18 @@ VECTORS: tuple[Vector, ...] = (
         ),
         "A companion computer whose clock is 0.300 s ahead of the mocap host's, known to ±0.7 ms.",
     ),
+    Vector(
+        "fleet_two",
+        keys.FLEET,
+        wire.Fleet(
+            t=_T,
+            b=(
+                wire.FleetVehicle("d1", (-1.0, 0.0, -1.0), (0.4, 0.0, 0.0)),
+                wire.FleetVehicle("d2", (0.5, 0.25, -1.2), (0.0, 0.0, 0.0)),
+            ),
+        ),
+        "Two vehicles: d1 flying north at 0.4 m/s toward d2, which hovers.",
+    ),
 )
 
 

@@ -69,9 +69,12 @@ def owners(cfg: ArenaConfig) -> dict[str, set[str]]:
         for leaf in ("mocap", "pose", "vision", "state", "telemetry/**", "events", "cmd", "truth"):
             own(f"arena/{v}/{leaf}", None)
     own("arena/sys/frames", None)
+    own("arena/sys/fleet", None)
     for h in cfg.hosts.values():
         if "mocap" in h.services:
             own("arena/sys/frames", h.name)
+        if "transform" in h.services:
+            own("arena/sys/fleet", h.name)
         for v in cfg.vehicles:
             if "mocap" in h.services:
                 own(f"arena/{v}/mocap", h.name)

@@ -15,6 +15,7 @@ process alive once it is done: each vehicle's action runs in a daemon thread, le
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
 import os
@@ -53,7 +54,7 @@ LAND_TIMEOUT = 10.0  # s to wait for the vehicles to land once the demo is asked
 STOP_TIMEOUT = 20.0  # s for the supervisor to stop its services before it is killed
 RESEND_LAND = 2.0  # s between land orders to a vehicle still flying (not landing) while stopping
 FLEET_RADIUS = 0.3  # m: the circle a fleet's grid flies around its spots
-FLEET_SPACING = 0.35  # m: the least distance between two vehicles of a fleet's grid
+HOVER_SWING = 0.4  # m: the simulated PX4 hover's largest swing about its point (docs/px4.md)
 MAX_FLEET = 250  # MAVLink system ids 1..250
 #: PX4 streams these on its onboard link at 30-100 Hz; the gateway reads none of them for itself, and a
 #: program sees raw telemetry at the vehicle's telemetry_rate (10 Hz) at most: a fleet asks for 10 Hz.
@@ -149,12 +150,14 @@ def formation_flight(
                 for n in names
             }
         else:
+            if step == 0:
+                order, offset = circle_slots(vehicles, radius)
             targets = {
                 n: (
-                    radius * math.cos(angle + 2 * math.pi * i / len(names)),
-                    radius * math.sin(angle + 2 * math.pi * i / len(names)),
+                    radius * math.cos(offset + angle + 2 * math.pi * i / len(order)),
+                    radius * math.sin(offset + angle + 2 * math.pi * i / len(order)),
                 )
-                for i, n in enumerate(names)
+                for i, n in enumerate(order)
             }
         say(f"formation step {step}/{steps}")
 
@@ -167,14 +170,65 @@ def formation_flight(
     say("landed: demo complete")
 
 
+def circle_slots(vehicles: Sequence[Vehicle], radius: float) -> tuple[list[str], float]:
+    """The order of the vehicles around the formation's circle and its starting angle such that each
+    vehicle's straight way from where it is to its place keeps ``arena.min_separation`` (and 0.2 m of
+    wander) from every other vehicle, where it is and where it goes — the gateways refuse a goto that
+    would not; of those, the shortest ways.  The given order at angle 0 when none is clear."""
+    cfg = vehicles[0].arena.config if vehicles else None
+    keep = (cfg.arena.min_separation if cfg is not None else 0.0) + 0.2
+    here = {v.name: (v.position or (0.0, 0.0, 0.0))[:2] for v in vehicles}
+    names = list(here)
+    n = len(names)
+    best: tuple[float, list[str], float] | None = None
+    orders = itertools.permutations(names) if n <= 6 else iter([tuple(names)])
+    for order in orders:
+        for k in range(24):
+            offset = k * math.pi / 12
+            slot = {
+                name: (
+                    radius * math.cos(offset + 2 * math.pi * i / n),
+                    radius * math.sin(offset + 2 * math.pi * i / n),
+                )
+                for i, name in enumerate(order)
+            }
+            if all(
+                _clear(here[a], slot[a], q, keep)
+                for a in names
+                for b in names
+                if b != a
+                for q in (here[b], slot[b])
+            ):
+                length = sum(math.dist(here[a], slot[a]) for a in names)
+                if best is None or length < best[0]:
+                    best = (length, list(order), offset)
+    return (best[1], best[2]) if best is not None else (names, 0.0)
+
+
+def _clear(a: tuple[float, ...], b: tuple[float, ...], q: tuple[float, ...], keep: float) -> bool:
+    """The segment ``a``–``b`` keeps ``keep`` from ``q`` (or starts within it: flying away is fine)."""
+    if math.dist(a, q) < keep:
+        return True
+    ab, aq = (b[0] - a[0], b[1] - a[1]), (q[0] - a[0], q[1] - a[1])
+    n2 = ab[0] ** 2 + ab[1] ** 2
+    k = 0.0 if n2 == 0.0 else max(0.0, min(1.0, (ab[0] * aq[0] + ab[1] * aq[1]) / n2))
+    return math.dist(q, (a[0] + k * ab[0], a[1] + k * ab[1])) >= keep
+
+
 # -- a fleet: N simulated vehicles on a grid (--vehicles) ------------------------------------------------------
 
 
-def grid(n: int, size: tuple[float, float], keep_off: float) -> list[tuple[float, float]]:
-    """``n`` places (north, east, m, about the room's centre) on the widest-spaced grid that fits a
-    floor of ``size`` (north, east) at ``keep_off`` from its walls, row by row.
+def fleet_spacing(min_separation: float) -> float:
+    """How far apart a fleet's vehicles stand: ``arena.min_separation`` plus two hovers' largest swing
+    (:data:`HOVER_SWING` each), so that two neighbours swinging toward each other still keep it."""
+    return min_separation + 2.0 * HOVER_SWING
 
-    :class:`ArenaError` when they would stand closer than :data:`FLEET_SPACING`.
+
+def grid(n: int, size: tuple[float, float], keep_off: float, least: float) -> list[tuple[float, float]]:
+    """``n`` places (north, east, m, about the room's centre) ``least`` apart on a grid that fits a floor
+    of ``size`` (north, east) at ``keep_off`` from its walls, row by row.
+
+    :class:`ArenaError` when no grid of them fits at least ``least`` apart.
     """
     length, width = size[0] - 2 * keep_off, size[1] - 2 * keep_off
     best: tuple[float, int, int] | None = None
@@ -187,15 +241,26 @@ def grid(n: int, size: tuple[float, float], keep_off: float) -> list[tuple[float
             best = (spacing, rows, cols)
     assert best is not None
     spacing, rows, cols = best
-    if spacing < FLEET_SPACING:
+    if spacing < least:
         raise ArenaError(
-            f"{n} vehicles do not fit the {size[0]:g} × {size[1]:g} m floor at least {FLEET_SPACING} m apart"
+            f"{n} vehicles do not fit the {size[0]:g} × {size[1]:g} m floor at least {least:g} m apart"
         )
-    spacing = min(spacing, 1.0)  # no further apart than a metre: a compact formation
     return [
-        (round((i % cols - (cols - 1) / 2) * spacing, 3), round((i // cols - (rows - 1) / 2) * spacing, 3))
+        (round((i % cols - (cols - 1) / 2) * least, 3), round((i // cols - (rows - 1) / 2) * least, 3))
         for i in range(n)
     ]
+
+
+def fleet_room(n: int, size: tuple[float, float], keep_off: float, least: float) -> tuple[float, float]:
+    """The floor (north, east, m) for ``n`` vehicles ``least`` apart: ``size`` when they fit it, else
+    the smallest one as long as wide in the same ratio, grown by half-metre steps of its length."""
+    length, width = size
+    while True:
+        try:
+            grid(n, (length, width), keep_off, least)
+            return (length, width)
+        except ArenaError:
+            length, width = length + 0.5, round((length + 0.5) * size[1] / size[0], 2)
 
 
 def _free_udp_ports(n: int) -> list[int]:
@@ -255,7 +320,8 @@ def to_toml(doc: Mapping[str, Any]) -> str:
 
 def fleet_config(base: Path, n: int, out: Path) -> tuple[Path, dict[str, tuple[float, float]]]:
     """Write to ``out`` the config of ``base`` with ``n`` simulated vehicles ``d1``…``dN`` instead of its own,
-    placed on a grid inside its room; their places by name.
+    placed on a grid :func:`fleet_spacing` apart inside its room (grown when they do not fit it: a fleet of
+    50 stands 1.4 m apart in a 14 × 8 m room); their places by name.
 
     Every vehicle gets a free loopback UDP port for its MAVLink link and the system id of its number; the
     base's first host runs them all, the transform decimates (``[pipeline] decimate = "transform"``: no
@@ -272,8 +338,12 @@ def fleet_config(base: Path, n: int, out: Path) -> tuple[Path, dict[str, tuple[f
     host = next(iter(cfg.hosts), None)
     if host is None:
         raise ArenaError(f"{base} names no host to run")
-    size = cfg.arena.size
-    spots = grid(n, (size[0], size[1]), cfg.arena.margin + FLEET_RADIUS + 0.1)
+    size, least = cfg.arena.size, fleet_spacing(cfg.arena.min_separation)
+    keep_off = cfg.arena.margin + FLEET_RADIUS + 0.1
+    floor = fleet_room(n, (size[0], size[1]), keep_off, least)
+    spots = grid(n, floor, keep_off, least)
+    if floor != (size[0], size[1]):  # a room grown for them: a simulation has walls where it likes
+        doc.setdefault("arena", {})["size"] = [floor[0], floor[1], size[2]]
     names = [f"d{i + 1}" for i in range(n)]
     doc.setdefault("pipeline", {})["decimate"] = "transform"
     doc.setdefault("zenoh", {})["vehicle_mode"] = "client"
@@ -307,8 +377,9 @@ def _wait_router(
     probed: UDP, a Unix socket), or on ``stop``; otherwise why not, naming what was waited for.
 
     The session is a Zenoh client, which gives up after 10 s without its router; the supervisor's router
-    listens 3.6 s after the demo starts it on an idle 2-core machine, 13.4 s with four CPU burners beside
-    it (measured): so the session opens only once the router listens, within the arena's ``deadline``.
+    listens 3.6 s after the demo starts it on an idle 2-core machine, 13.4 s on the same machine loaded
+    (load average 5: other test tiers and CPU burners; measured): so the session opens only once the router
+    listens, within the arena's ``deadline``.
     """
     probes = [(e, a) for e in cfg.zenoh.connect if (a := endpoint_address(e)) is not None]
     if not probes:

@@ -15,6 +15,7 @@ from arena_common.runtime.options import (
     HostOpt,
     LogOpt,
 )
+from arena_common.runtime.process import lead_own_session
 from arena_common.runtime.service import setup_logging, yield_cpu
 
 
@@ -44,6 +45,7 @@ def view_cmd(
     The Foxglove WebSocket protocol has no login: beyond loopback the view is for anyone on the network,
     so an address that is not loopback needs ``--public`` (and is announced as such).
     """
+    lead_own_session()  # first: what follows runs once, in the leader of a session of its own
     setup_logging(log_level)
     if not is_loopback(address) and not public:
         typer.echo(

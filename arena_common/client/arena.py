@@ -84,6 +84,7 @@ class Arena:
             bus = open_bus(config.zenoh if config else ZenohSpec(), options)
         self.bus = bus
         self._vehicles: dict[str, Vehicle] = {}
+        self._fleet: tuple[wire.Fleet, float] | None = None  # every vehicle's position (arena/sys/fleet)
         self._channel: Channel[Received[Any]] = Channel(8192, ring=True)
         self._lock = threading.Lock()
         self._closed = threading.Event()
@@ -98,6 +99,12 @@ class Arena:
                 continue
             if item.payload is None:
                 self._reject(item.key, f"undecodable: {item.error}")
+                continue
+            if item.key == keys.FLEET:
+                if isinstance(item.payload, wire.Fleet):
+                    self._fleet = (item.payload, time.monotonic())
+                else:
+                    self._reject(item.key, f"unexpected {type(item.payload).__name__}")
                 continue
             parts = item.key.split("/")
             v = self._vehicles.get(parts[1]) if len(parts) > 2 else None
@@ -117,6 +124,14 @@ class Arena:
 
     def _subscribe(self, keyexpr: str) -> None:
         self.bus.subscribe(keyexpr, channel=self._channel)
+
+    def positions(self, max_age: float = 1.0) -> dict[str, tuple[float, float, float]]:
+        """Every tracked vehicle's position (arena NED), from the frame transform's 10 Hz fleet message
+        (``arena/sys/fleet``); empty when it is older than ``max_age`` seconds."""
+        fleet = self._fleet
+        if fleet is None or time.monotonic() - fleet[1] > max_age:
+            return {}
+        return {e.n: e.p for e in fleet[0].b}
 
     def vehicle(self, name: str) -> Vehicle:
         """The :class:`Vehicle` of ``name`` (one per name; created on first use).
@@ -145,6 +160,8 @@ class Arena:
             v = self._vehicles.get(name)
             if v is None:
                 v = Vehicle(self, name)
+                if not self._vehicles:
+                    self._subscribe(keys.FLEET)  # where the others are: trajectories keep apart
                 self._vehicles[name] = v
                 for key in v._subscriptions():
                     self._subscribe(key)

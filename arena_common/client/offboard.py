@@ -16,13 +16,17 @@ climb and acceleration limits) before the autopilot sees it.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
+
+import msgspec
 
 from arena_common.bus.session import Lane
 from arena_common.client.streams import Callback
@@ -48,7 +52,7 @@ __all__ = [
 Vec3 = tuple[float, float, float]
 log = logging.getLogger("arena_common.client")
 MAX_ACCEL = 5.0  # m/s²: the gateway's limit on an acceleration feed-forward (gateway.setpoints.MAX_ACCEL)
-MAX_START_OFFSET = 0.3  # m: a trajectory must start this close to the vehicle
+MAX_START_OFFSET = 0.5  # m: a trajectory must start this close to the vehicle (PX4's hover swings 24-40 cm)
 MAX_YAW = 1000.0  # rad: the gateway's limit on a yaw (gateway.setpoints.MAX_YAW)
 MAX_YAW_RATE = 2.0 * math.pi  # rad/s: the gateway's limit on a yaw rate (gateway.setpoints.MAX_YAW_RATE)
 MAX_TILT = math.radians(35.0)  # rad: the gateway's limit on an attitude setpoint's tilt
@@ -73,7 +77,32 @@ def trajectory_problem(vehicle: Vehicle, trajectory: Trajectory) -> str | None:
     p = vehicle.position
     if problem is None and p is not None and math.dist(p, trajectory.start) > MAX_START_OFFSET:
         problem = f"it starts {math.dist(p, trajectory.start):.2f} m from the vehicle"
+    if problem is None and cfg is not None:
+        problem = _separation_problem(vehicle, trajectory, cfg.arena.min_separation)
     return problem
+
+
+def _separation_problem(vehicle: Vehicle, trajectory: Trajectory, min_separation: float) -> str | None:
+    """Where ``trajectory`` comes within ``min_separation`` of another vehicle's position now (the gateway
+    would refuse those setpoints), or None.  A vehicle it already starts near is left out: flying away
+    must stay possible."""
+    others = {
+        n: q
+        for n, q in vehicle.arena.positions().items()
+        if n != vehicle.name and math.dist(q, trajectory.start) >= min_separation
+    }
+    if min_separation <= 0.0 or not others:
+        return None
+    steps = max(1, math.ceil(trajectory.duration / 0.05))
+    for k in range(steps + 1):
+        pt = trajectory.sample(trajectory.duration * k / steps)
+        for n, q in others.items():
+            if math.dist(pt.p, q) < min_separation:
+                return (
+                    f"at {pt.t:.1f} s it passes {math.dist(pt.p, q):.2f} m from {n} "
+                    f"(min_separation {min_separation:.2f} m)"
+                )
+    return None
 
 
 def setpoint_problem(vehicle: Vehicle, fields: dict[str, Any]) -> str | None:
@@ -126,8 +155,22 @@ def _checked(fields: dict[str, Any]) -> None:
     wire.Setpoint.decode(wire.Setpoint(t=0, **fields).encode(), "setpoint")
 
 
+_STREAMS = itertools.count(1)
+
+
+def new_stream_id(vehicle: str) -> str:
+    """An identity for one stream, unique across hosts and programs (random) and readable (vehicle, pid,
+    number within this process)."""
+    return f"{vehicle}-{os.getpid()}-{next(_STREAMS)}-{os.urandom(3).hex()}"
+
+
 class OffboardStream:
     """Streams the latest setpoint at a steady rate from its own thread, whatever the user's loop does.
+
+    Every setpoint names this stream (:attr:`id`) and its number in it: the gateway orders them by that,
+    never by arrival (docs/safety.md).  Entering the block engages *this* stream (``mode OFFBOARD`` with
+    its identity); leaving it, or :meth:`handover`, ends it by a command — a late setpoint of it is then
+    dropped by the gateway, never taking the vehicle back.
 
     Each setpoint carries a lease.  Leaving the block puts the vehicle in Hold (AUTO.LOITER) where it is,
     as MAVSDK's ``offboard.stop()`` does, before the stream stops: a velocity setpoint does not coast on.
@@ -152,10 +195,15 @@ class OffboardStream:
         self._thread: threading.Thread | None = None
         self._handed_over = False
         self._refused: str | None = None  # a refusal the gateway reported, raised at the next call
+        self._taken = threading.Event()  # a command (of any program) took the vehicle from this stream
+        self._ending = False  # this block's own hold or hand-over is under way: it takes the vehicle
         self._watch: Callback | None = None
         self._pub = vehicle.arena.bus.stream_publisher(
             keys.setpoint(vehicle.name), wire.Setpoint, Lane.CONTROL
         )
+        self.id = new_stream_id(vehicle.name)
+        """This stream's identity on the wire (``Setpoint.stream``)."""
+        self._seq = 0
         self.sent = 0
         self.errors = 0
 
@@ -172,7 +220,13 @@ class OffboardStream:
             raise SafetyRefused(f"{name}: setpoint refused: {problem}", result="REFUSED", drone=name)
 
     def _on_event(self, event: wire.Event) -> None:
-        if event.kind == "safety" and event.text.startswith("setpoint refused"):
+        if event.kind == "authority" and event.data.get("ended") == self.id:
+            if not self._ending and event.data.get("by") != self.vehicle.arena.src:
+                with self._lock:  # another program (or ROS 2, the CLI) took the vehicle: say so
+                    self._refused = self._refused or event.text
+            self._taken.set()  # by this program's own command too: the stream has ended, stop it
+            self._stop.set()
+        elif event.kind == "safety" and event.text.startswith("setpoint refused"):
             with self._lock:
                 self._refused = self._refused or event.text
 
@@ -292,6 +346,12 @@ class OffboardStream:
                     f"{v.name}: left OFFBOARD ({v.mode}) while following a trajectory (last events: {recent})",
                     drone=v.name,
                 )
+            if self._taken.is_set():
+                raise CommandRejected(
+                    f"{v.name}: the vehicle was taken from this stream while following a trajectory "
+                    f"({self._refused or 'by a command of this program'})",
+                    drone=v.name,
+                )
             if time.monotonic() > deadline or self._stop.is_set():
                 raise CommandRejected(f"{v.name}: trajectory not completed", drone=v.name)
 
@@ -301,6 +361,7 @@ class OffboardStream:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(2.0)
+        self._ending = True
         args: dict[str, Any] = {"p": list(_vec(goal, "goal"))}
         if yaw is not None:
             args["yaw"] = float(yaw)
@@ -348,7 +409,8 @@ class OffboardStream:
             try:
                 sp = self._next()
                 if sp is not None:
-                    self._pub.put(sp)
+                    self._seq += 1
+                    self._pub.put(msgspec.structs.replace(sp, stream=self.id, seq=self._seq))
                     self.sent += 1
             except Exception:  # counted and logged; nothing is sent, so the lease lapses if it goes on
                 self.errors += 1
@@ -376,10 +438,11 @@ class OffboardStream:
         self._watch = v.on_event(self._on_event)
         self._thread = threading.Thread(target=self._run, name=f"offboard:{v.name}", daemon=True)
         self._thread.start()
+        v._open_streams.append(self.id)
         if self.engage:
             try:
                 time.sleep(max(3 * self.period, 0.3))  # the autopilot needs a stream before OFFBOARD
-                v.set_mode("OFFBOARD")
+                v.command("mode", 5.0, mode="OFFBOARD", stream=self.id)
             except BaseException:
                 self.close()
                 raise
@@ -390,6 +453,8 @@ class OffboardStream:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(2.0)
+        if self.id in self.vehicle._open_streams:
+            self.vehicle._open_streams.remove(self.id)
         if self._watch is not None:
             self._watch.cancel()
             self._watch = None
@@ -399,7 +464,8 @@ class OffboardStream:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         try:
-            if not self._handed_over and self.vehicle.mode == "OFFBOARD":
+            if not self._handed_over and self.vehicle.mode == "OFFBOARD" and not self._taken.is_set():
+                self._ending = True
                 self.vehicle.hold()  # while our stream still runs: no gap for the failsafe to see
         except CommandError:
             if exc_type is None:

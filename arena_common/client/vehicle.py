@@ -90,6 +90,7 @@ class Vehicle:
         """Raw autopilot messages: ``d1.telemetry("HIGHRES_IMU")``, ``.stream(name)``, ``.on(name, fn)``."""
         self.params = Params(self)
         """The autopilot's parameters: ``d1.params.get("MPC_XY_VEL_MAX")``, ``.set(name, value)``."""
+        self._open_streams: list[str] = []  # this program's offboard blocks open on this vehicle
 
     # -- input from the arena's client thread ---------------------------------------------------------
     def _update(self, item: Any) -> None:
@@ -477,8 +478,12 @@ class Vehicle:
 
     def set_mode(self, mode: str, timeout: float = 5.0) -> None:
         """Switch flight mode by name or :class:`FlightMode` (POSCTL, AUTO.LOITER, OFFBOARD…), confirmed
-        from the heartbeat."""
-        self.command("mode", timeout, mode=str(mode))
+        from the heartbeat.  OFFBOARD engages this program's newest open offboard block on the vehicle
+        (one opened with ``engage=False``); any other mode ends every setpoint stream (docs/safety.md)."""
+        if str(mode) == "OFFBOARD" and self._open_streams:
+            self.command("mode", timeout, mode="OFFBOARD", stream=self._open_streams[-1])
+        else:
+            self.command("mode", timeout, mode=str(mode))
 
     def goto(
         self,

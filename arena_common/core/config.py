@@ -56,6 +56,8 @@ class ArenaSpec(Spec, frozen=True):
     margin: Annotated[float, Meta(ge=0.0, le=5.0)] = 0.3
     max_speed: Annotated[float, Meta(ge=0.0, le=20.0)] = 2.0  # m/s, horizontal setpoint limit
     max_climb: Annotated[float, Meta(ge=0.0, le=10.0)] = 1.0  # m/s, vertical setpoint limit
+    # m, centre to centre, that no vehicle is flown within of another (docs/safety.md: why 0.6 m)
+    min_separation: Annotated[float, Meta(ge=0.0, le=10.0)] = 0.6
 
     def safe_box(self) -> tuple[tuple[float, float], tuple[float, float], tuple[float, float]]:
         """(north, east, down) limits of the safe volume: the room minus the margin, origin floor centre."""

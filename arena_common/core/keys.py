@@ -66,6 +66,12 @@ KEYS: tuple[KeySpec, ...] = (
         "Every vehicle's rigid body of one mocap frame (Motive frame), one message per frame.",
     ),
     KeySpec("arena/sys/bodies/<body>", "MocapPose", "stream", "Rigid bodies no vehicle claims (optional)."),
+    KeySpec(
+        "arena/sys/fleet",
+        "Fleet",
+        "stream",
+        "Every vehicle's position and velocity (arena NED) at 10 Hz, one message: what keeps vehicles apart.",
+    ),
     KeySpec("arena/sys/rec/<host>", "Command → CommandResult", "query", "Recorder control (start/stop)."),
     KeySpec(
         "arena/sys/time",
@@ -187,6 +193,7 @@ def clock(host: str, service: str) -> str:
 
 TIME = f"{ROOT}/sys/time"
 FRAMES = f"{ROOT}/sys/frames"
+FLEET = f"{ROOT}/sys/fleet"
 CLOCK_ALL = f"{ROOT}/sys/clock/**"
 ALIVE_ALL = f"{ROOT}/sys/alive/**"
 STATS_ALL = f"{ROOT}/sys/stats/**"
@@ -215,7 +222,7 @@ def parse(key: str) -> ParsedKey:
             return ParsedKey("bodies", extra=parts[3])
         if len(parts) == 4 and parts[2] == "rec":
             return ParsedKey("rec", extra=parts[3])
-        if len(parts) == 3 and parts[2] in ("time", "frames"):
+        if len(parts) == 3 and parts[2] in ("time", "frames", "fleet"):
             return ParsedKey(parts[2])
         raise InvalidName(f"unknown system key: {key!r}")
     drone = validate_name(parts[1])

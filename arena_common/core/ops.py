@@ -130,8 +130,17 @@ _VEHICLE: tuple[Op, ...] = (
     Op(
         "mode",
         ("vehicle",),
-        "switch to a PX4 mode; OFFBOARD only with a live setpoint stream, manual modes never",
-        (Arg("mode", "text", "PX4 mode name: AUTO.LOITER, AUTO.LAND, OFFBOARD…"),),
+        "switch to a PX4 mode; OFFBOARD only in the air with a live setpoint stream, manual modes never",
+        (
+            Arg("mode", "text", "PX4 mode name: AUTO.LOITER, AUTO.LAND, OFFBOARD…"),
+            Arg(
+                "stream",
+                "text",
+                "with OFFBOARD: the setpoint stream to engage (default: the newest live)",
+                "",
+                None,
+            ),
+        ),
         client="set_mode",
     ),
     Op(

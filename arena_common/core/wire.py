@@ -56,6 +56,8 @@ __all__ = [  # the machinery's public names, re-exported: users import the wire 
     "CommandResult",
     "Estop",
     "Event",
+    "Fleet",
+    "FleetVehicle",
     "Map",
     "MocapBody",
     "MocapFrame",
@@ -125,6 +127,15 @@ class MocapPose(Payload, frozen=True):
         return super().check() or (_quat_problem(self.q, "q") if self.ok else None)
 
 
+def _items_problem(items: tuple[Payload, ...], name: str) -> tuple[str, str] | None:
+    """The first problem of an ``items`` field's elements, named ``name[i].field``, or None."""
+    for i, item in enumerate(items):
+        problem = item.check()
+        if problem:
+            return f"{name}[{i}].{problem[0]}", problem[1]
+    return None
+
+
 @part
 class MocapBody(Payload, frozen=True):
     """One rigid body of a :class:`MocapFrame`: what a :class:`MocapPose` says of it beyond the frame."""
@@ -165,14 +176,7 @@ class MocapFrame(Payload, frozen=True):
     tp: _Published = _always(0)
 
     def check(self) -> tuple[str, str] | None:
-        problem = super().check()
-        if problem:
-            return problem
-        for i, body in enumerate(self.b):
-            problem = body.check()
-            if problem:
-                return f"b[{i}].{problem[0]}", problem[1]
-        return None
+        return super().check() or _items_problem(self.b, "b")
 
     def pose(self, body: MocapBody) -> MocapPose:
         """``body`` as the :class:`MocapPose` the per-vehicle ``mocap`` key carries for this frame."""
@@ -244,6 +248,13 @@ class State(Payload, frozen=True):
     setup_ok: Annotated[bool, _doc("The arena's required autopilot parameters are set")] = _always(False)
     fs: Annotated[Strs, _doc("Active failsafes or warnings")] = _always(())
     tp: Annotated[int, _int("Publish time", unit="ns")] = _always(0)
+    auth: Annotated[
+        Str,
+        _doc(
+            "Who holds the vehicle: 'stream <id> (<source>)', 'goto (<source>)' (the gateway's hold), or "
+            "empty (the autopilot's own mode)"
+        ),
+    ] = _always("")
 
     def check(self) -> tuple[str, str] | None:
         return super().check() or _quat_problem(self.q, "q")
@@ -271,6 +282,7 @@ _EVENT_KINDS = (
     "setup",
     "estimator",
     "clock",
+    "authority",
     "info",
 )
 
@@ -349,6 +361,10 @@ class Setpoint(Payload, frozen=True):
     yaw: Annotated[float, _float("Yaw", unit="rad")] | None = None
     yr: Annotated[float, _float("Yaw rate", unit="rad/s")] | None = None
     src: Annotated[Str, _doc("Who sends it")] = _always("")
+    stream: Annotated[
+        Str, _doc("The stream it belongs to (unique per stream; a command engages or ends it by this)")
+    ] = _always("")
+    seq: Annotated[int, _int("Its number within the stream, from 1 (0: unnumbered)", lo=0)] = _always(0)
 
     def check(self) -> tuple[str, str] | None:
         if problem := super().check():
@@ -367,6 +383,31 @@ class Setpoint(Payload, frozen=True):
         if self.yaw is not None and self.yr is not None:
             return "yr", "give yaw or yaw rate, not both"
         return None
+
+
+@part
+class FleetVehicle(Payload, frozen=True):
+    """One vehicle of a :class:`Fleet`."""
+
+    SCHEMA = "FleetVehicle"
+    DOC = "One tracked vehicle: its name, position and velocity (arena NED)."
+    n: Annotated[Str, _doc("Vehicle name")]
+    p: Annotated[Vec3, _doc("Position north, east, down", unit="m")]
+    v: Annotated[Vec3, _doc("Velocity north, east, down (zeros when unknown)", unit="m/s")]
+
+
+@payload
+class Fleet(Payload, frozen=True):
+    """Where every tracked vehicle is, in one message at a low rate: each gateway keeps its vehicle apart
+    from the others with it (``arena.min_separation``), one subscription whatever the fleet's size."""
+
+    SCHEMA = "Fleet"
+    DOC = "Every tracked vehicle's position and velocity (arena NED) of one mocap frame, at 10 Hz."
+    t: _MeasuredAt
+    b: Annotated[tuple[FleetVehicle, ...], Meta(max_length=256), _doc("The vehicles")]
+
+    def check(self) -> tuple[str, str] | None:
+        return super().check() or _items_problem(self.b, "b")
 
 
 @payload
@@ -451,6 +492,7 @@ _KIND_TO_TYPE: dict[str, type[Payload]] = {
     "stats": Stats,
     "bodies": MocapPose,
     "frames": MocapFrame,
+    "fleet": Fleet,
     "cmd": Command,
     "rec": Command,
     "clock": ClockOffset,

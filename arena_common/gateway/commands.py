@@ -12,6 +12,7 @@ reason when the arena's rules forbid it, ``FAILED`` when the autopilot accepted 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -92,6 +93,7 @@ class CommandExecutor:
         self.vision_stale = vision_stale
         self.goto_tolerance = goto_tolerance
         self.clock_problem = clock_problem
+        self._src = threading.local()  # the source of the command this thread runs
         self._ops: dict[str, Callable[[Mapping[str, Any], float], wire.CommandResult]] = {
             op.name: getattr(self, f"_{op.name}") for op in ops.vehicle_ops()
         }
@@ -113,6 +115,7 @@ class CommandExecutor:
             )
             result = _refused(f"no link to the autopilot ({heard})")
         else:
+            self._src.name = cmd.src
             try:
                 result = op(ops.check(cmd.op, cmd.args), deadline)
             except ops.OpError as exc:
@@ -147,6 +150,11 @@ class CommandExecutor:
         return list(dict.fromkeys(texts))[-4:]
 
     # -- helpers -------------------------------------------------------------------------------------
+    def _take(self, what: str) -> None:
+        """This command takes the vehicle: every setpoint stream seen so far ends (docs/safety.md)."""
+        src = getattr(self._src, "name", "")
+        self.forwarder.supersede(f"{what} from {src or '?'}", src=src)
+
     def _confirm(self, predicate: Callable[[], bool], deadline: float) -> bool:
         if predicate():
             return True
@@ -218,6 +226,7 @@ class CommandExecutor:
         return _result(result)
 
     def _kill(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        self._take("kill")
         self.forwarder.latch("kill")
         params = (0, px4.ARM_DISARM_FORCE_MAGIC)
         return _result(self.commander.command(px4.MAV_CMD_COMPONENT_ARM_DISARM, params, deadline))
@@ -230,13 +239,16 @@ class CommandExecutor:
         back = self.params.write("MIS_TAKEOFF_ALT", height, px4.MAV_PARAM_TYPE_REAL32, deadline)
         if back is None:
             return _result("TIMEOUT", "could not set MIS_TAKEOFF_ALT")
+        self._take("takeoff")
         result = self.commander.command(px4.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, NAN, NAN, NAN, NAN), deadline)
         return _result(result, height=height)
 
     def _land(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        self._take("land")
         return _result(self.commander.command(px4.MAV_CMD_NAV_LAND, (0, 0, 0, NAN, NAN, NAN, NAN), deadline))
 
     def _hold(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
+        self._take("hold")
         return self._set_mode("AUTO.LOITER", deadline)
 
     def _mode(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
@@ -245,15 +257,21 @@ class CommandExecutor:
         if main in _MANUAL_MAINS:
             return _refused(f"{name} needs manual control input, which the arena never sends")
         if main != px4.MAIN_OFFBOARD:
+            self._take(f"mode {name}")
             return self._set_mode(name, deadline)
-        before = self.forwarder.latched
-        self.forwarder.unlatch()
+        grounded = self.state.flight_problem()
+        if grounded is not None:
+            return _refused(f"{grounded}: take off first (OFFBOARD flies only a vehicle in the air)")
+        snap = self.forwarder.snapshot()
+        why = self.forwarder.engage(args["stream"], getattr(self._src, "name", ""))
+        if why is not None:
+            return _refused(why)
         if self.state.mode != "OFFBOARD":
             until = min(deadline, time.monotonic() + self.forwarder.prestream + 0.5)
             while not self.forwarder.live() and time.monotonic() < until:
                 time.sleep(0.02)
             if not self.forwarder.live():
-                self.forwarder.restore_latch(before)
+                self.forwarder.restore(snap)
                 return _refused(
                     "no live setpoint stream: stream setpoints (within their lease) for "
                     f"{self.forwarder.prestream:.1f} s first, or use goto"
@@ -273,12 +291,15 @@ class CommandExecutor:
         where = outside(goal, self.arena.safe_box())
         if where:
             return _refused(f"goal outside the safe volume: {where}")
-        if not self.state.armed:
-            return _refused("not armed")
-        if self.state.landed in ("on_ground", "undefined"):
-            return _refused("on the ground: take off first")
+        grounded = self.state.flight_problem()
+        if grounded is not None:
+            return _refused(f"{grounded}: take off first")
+        sep = self.forwarder.separation
+        near = sep.path_problem(self.state.position(time.monotonic()), goal) if sep is not None else None
+        if near is not None:
+            return _refused(f"{near}: vehicles never meet")
         before = self.forwarder.latched
-        self.forwarder.start_goto(goal, yaw)
+        self.forwarder.start_goto(goal, yaw, src=getattr(self._src, "name", ""))
         if self.state.mode != "OFFBOARD":
             while not self.forwarder.live() and time.monotonic() < deadline:
                 time.sleep(0.02)

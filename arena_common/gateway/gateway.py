@@ -68,6 +68,7 @@ from arena_common.gateway.commands import CommandExecutor
 from arena_common.gateway.events import EventSink
 from arena_common.gateway.options import GatewayOptions, stream_ids
 from arena_common.gateway.origin import GlobalOrigin
+from arena_common.gateway.separation import Separation
 from arena_common.gateway.setpoints import SetpointForwarder
 from arena_common.gateway.state import VehicleState
 from arena_common.gateway.telemetry import TelemetryPublisher
@@ -146,9 +147,11 @@ class Gateway:
             send_velocity=o.send_velocity,
             stats=self.stats,
             offset_ns=clock.offset_ns if clock is not None else None,
+            source=keys.vision(v.name),
         )
         self.commander, self.params, self.metadata, self.setup = self._protocols()
         self._reboot_names: frozenset[str] | None = None
+        self.separation = Separation(self.name, self.cfg.arena.min_separation)
         self.forwarder = self._setpoint_forwarder()
         self.executor = self._command_executor()
         self.telemetry = TelemetryPublisher(bus, v.name, self.telemetry_rate, exclude=(MSG["TIMESYNC"],))
@@ -197,10 +200,13 @@ class Gateway:
             goto_climb=o.goto_climb,
             position=lambda: self.state.position(time.monotonic()),
             velocity=lambda: self.state.v if self.state.position(time.monotonic()) is not None else None,
+            grounded=self.state.flight_problem,
+            separation=self.separation,
             stats=self.stats,
         )
 
     def _command_executor(self) -> CommandExecutor:
+        stale = self.options.vision_stale
         return CommandExecutor(
             vehicle=self.spec,
             arena=self.cfg.arena,
@@ -213,8 +219,10 @@ class Gateway:
             timesync=self.timesync,
             events=self.events,
             origin=self.origin,
-            vision_stale=self.options.vision_stale,
-            clock_problem=self.clock_problem if self.clock is not None else None,
+            vision_stale=stale,
+            # Checked before the vision's age, which is all the executor would say: the clock, then why
+            # vision went stale.
+            clock_problem=lambda: self.clock_problem() or self.vision.problem(time.monotonic(), stale),
         )
 
     def _message_handlers(self) -> dict[int, Callable[[Any, float], None]]:
@@ -258,6 +266,7 @@ class Gateway:
             )
             sp_sub = bus.subscribe(keys.setpoint(self.name), capacity=4, ring=True)
             self._thread(self.forwarder.run, "setpoints", sp_sub, self._stop, self._failed)
+            bus.subscribe(keys.FLEET, channel=Handler(self._on_fleet, lambda e: self._failed("fleet", e)))
             estop_sub = bus.subscribe(keys.ESTOP, capacity=16, ring=False)
             self._thread(self._estop_loop, "estop", estop_sub)
             bus.serve(keys.cmd(self.name), self.executor.handle, workers=2)
@@ -582,6 +591,7 @@ class Gateway:
             setup_ok=bool(self.setup.ok) and not self.setup.reboot_pending,
             fs=tuple(flags),
             tp=t,
+            auth=self.forwarder.holder,
         )
         if self._state_pub is not None and self._state_pub.matching:  # nobody listening: nothing to send
             self._safe(self._state_pub.put, msg)
@@ -645,8 +655,22 @@ class Gateway:
         else:
             self.stats.reject(f"vision: {reason}")
 
+    def _on_fleet(self, item: Received[Any]) -> None:
+        """Every vehicle's position (10 Hz): keep this one apart from the others while it flies (on the
+        ground nothing is decoded: an idle fleet costs next to nothing)."""
+        if self._stop.is_set() or self.state.flight_problem() is not None:
+            return
+        fleet = typed(item, wire.Fleet, lambda kind, detail: self.stats.reject(f"fleet: {kind}"))
+        if fleet is not None:
+            self.separation.update(fleet)
+            closing = self.separation.closing()
+            if closing is not None:
+                self.forwarder.guard(closing, self.state.mode == "OFFBOARD")
+
     def _vision_reject(self, kind: str, detail: str) -> None:
-        self.stats.reject("vision: undecodable" if kind == "bad_payload" else "vision: not a Pose")
+        reason = "undecodable" if kind == "bad_payload" else "not a Pose"
+        self.vision.refused(reason)
+        self.stats.reject(f"vision: {reason}")
 
     def _estop_reject(self, kind: str, detail: str) -> None:
         self.stats.reject("estop: undecodable" if kind == "bad_payload" else "estop: not an Estop")
@@ -666,6 +690,7 @@ class Gateway:
 
     def estop(self, e: wire.Estop) -> str:
         """Land (or kill the motors when ``e.kill``) at once; the autopilot's result."""
+        self.forwarder.supersede(f"estop from {e.src or '?'}", src=e.src)
         self.forwarder.latch("estop")
         params: tuple[float, ...]
         if e.kill:

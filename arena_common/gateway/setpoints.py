@@ -20,15 +20,22 @@ The rules, in the order they apply:
   When the lease expires, streaming stops (an Event says so): the silence is what lets PX4 detect
   offboard loss and take its COM_OBL_RC_ACT action.  The gateway never streams on its own to keep a
   vehicle in offboard.
+- Who holds the vehicle, and the order of hand-overs, follow :mod:`~arena_common.gateway.authority`:
+  every setpoint names its stream and its number; only commands move the vehicle from one source to
+  another (``mode OFFBOARD`` with a stream's identity engages that stream, ``goto`` the gateway's own
+  hold, ``takeoff``/``land``/``hold``/another mode/``kill``/estop the autopilot), and a command that takes
+  the vehicle ends every stream seen before it: their later setpoints are dropped and counted, never
+  taking over.  A setpoint of a stream that does not hold the vehicle is held back until its engage.
+- Nothing flies from the floor: a setpoint while the vehicle is disarmed, on the ground or landing is
+  refused with that reason (``takeoff`` is the way up).
 - Whenever the vehicle leaves OFFBOARD (a failsafe, a land, hold or mode command, a ground station, an
-  estop), the forwarder *latches*: it stops sending and holds user setpoints back, so that neither PX4
-  nor a late user stream can re-engage offboard by itself.  Only an explicit ``mode OFFBOARD`` or
-  ``goto`` command releases the latch.  A program opening an offboard block streams first and commands
-  OFFBOARD a moment later (PX4 needs the stream before the switch): setpoints held back for less than
+  estop), the forwarder *latches*: it stops sending and nobody holds the vehicle, so that neither PX4 nor
+  a late stream can re-engage offboard by itself.  A program opening an offboard block streams first and
+  engages a moment later (PX4 needs the stream before the switch): setpoints held back for less than
   ``HELD_BACK_GRACE`` s are that, and only a stream held back longer is warned about.
 - ``goto`` is the gateway's own stream: a position carrot that moves from the vehicle toward the goal
   at ``goto_speed`` (horizontal) and ``goto_climb`` (vertical), then holds the goal indefinitely, until
-  a user setpoint takes over, another command changes the mode, or the vehicle leaves OFFBOARD.
+  a command engages a stream, another command changes the mode, or the vehicle leaves OFFBOARD.
 """
 
 from __future__ import annotations
@@ -43,7 +50,9 @@ from typing import Any, cast
 from arena_common.bus.session import Subscription, typed
 from arena_common.core import wire
 from arena_common.core.config import ArenaSpec
+from arena_common.gateway.authority import Holder, Ledger
 from arena_common.gateway.events import EventSink
+from arena_common.gateway.separation import Closing, Separation
 from arena_common.mavlink import px4
 from arena_common.mavlink.link import MavlinkLink
 from arena_common.runtime.service import Stats
@@ -69,6 +78,7 @@ MAX_ACCEL = 5.0  # m/s², norm of an acceleration feed-forward: a trajectory's, 
 ATTITUDE_LOOKAHEAD = 0.75  # s: an attitude stream stops where the vehicle's velocity takes it out this soon
 MAX_TILT = math.radians(35.0)  # rad, of an attitude setpoint from level: PX4's default MPC_TILTMAX_AIR
 HELD_BACK_GRACE = 1.5  # s: a stream held back this long without a mode OFFBOARD command is warned about
+MAX_PENDING = 16  # streams waiting for their engage, remembered with their latest setpoint
 
 
 def yaw_problem(yaw: float | None, yr: float | None = None) -> str | None:
@@ -114,6 +124,7 @@ class _Stream:
     a: Vec3 | None = None
     q: tuple[float, float, float, float] | None = None  # an attitude stream (with thrust)
     thrust: float = 0.0
+    sid: str = ""  # the user stream's identity
 
 
 def outside(p: Vec3, box: tuple[tuple[float, float], tuple[float, float], tuple[float, float]]) -> str | None:
@@ -148,6 +159,8 @@ class SetpointForwarder:
         goto_climb: float = 0.5,
         position: Callable[[], Vec3 | None] = lambda: None,
         velocity: Callable[[], Vec3 | None] = lambda: None,
+        grounded: Callable[[], str | None] = lambda: None,
+        separation: Separation | None = None,
         stats: Stats | None = None,
     ) -> None:
         self.link = link
@@ -162,9 +175,16 @@ class SetpointForwarder:
         self.goto_climb = min(goto_climb, arena.max_climb)
         self.position = position
         self.velocity = velocity
+        self.grounded = grounded  # why setpoints cannot fly now (disarmed, on the ground, landing)
+        self.separation = separation
         self.stats = stats or Stats()
         self._lock = threading.RLock()
-        self._stream: _Stream | None = None
+        self._stream: _Stream | None = None  # what is sent: the holder's latest setpoint, or the goto carrot
+        self._holder: Holder | None = None
+        self._pending: dict[
+            str, tuple[_Stream, str, float]
+        ] = {}  # stream -> latest setpoint, source, arrival
+        self.ledger = Ledger()
         self._latched: str | None = None
         self._since = math.inf
         self._held: tuple[float, float] | None = None  # first and latest user setpoint held back
@@ -173,6 +193,8 @@ class SetpointForwarder:
         self._t0 = time.monotonic()
         self.sent = 0
         self.refused = 0
+        self.dropped = 0  # setpoints of ended streams, or out of order
+        self.held = 0  # setpoints of streams not (yet) engaged
         self._sub: Subscription | None = None  # the thread's subscription (start_goto wakes it there)
         self._idle = False  # the thread waits IDLE_WAIT: no stream
 
@@ -191,6 +213,9 @@ class SetpointForwarder:
             where = outside(sp.p, self.box)
             if where:
                 return f"position outside the safe volume: {where}"
+            near = self.separation.point_problem(sp.p) if self.separation is not None else None
+            if near:
+                return f"position {near}"
         if sp.a is not None and math.sqrt(sum(x * x for x in sp.a)) > MAX_ACCEL + 1e-9:
             norm = math.sqrt(sum(x * x for x in sp.a))
             return f"acceleration feed-forward {norm:.2f} m/s² above {MAX_ACCEL:.1f} m/s²"
@@ -251,16 +276,27 @@ class SetpointForwarder:
 
     # -- input ---------------------------------------------------------------------------------------
     def offer(self, sp: wire.Setpoint, now: float | None = None) -> str | None:
-        """Accept a user setpoint (sent at once, then streamed while its lease runs) or refuse it."""
+        """Take a user setpoint: sent at once (then streamed while its lease runs) when its stream holds
+        the vehicle, held back when it waits for its engage; refused or dropped (counted) otherwise.
+        Returns why it does not fly, or None."""
         now = time.monotonic() if now is None else now
         reason = self.check(sp)
+        if reason is None and (not sp.stream or sp.seq < 1):
+            reason = "no stream identity (stream, seq): a setpoint must say which stream it belongs to"
         if reason is not None:
             self.refuse(reason)
             return reason
         with self._lock:
-            if self._stream is not None and self._stream.source == "goto":
-                self.events.emit("info", "user setpoints take over from goto", 6)
-            self._stream = _Stream(
+            why = self.ledger.admit(sp.stream, sp.seq)
+            if why is not None:
+                self._drop(why)
+                return why
+            grounded = self.grounded()
+            if grounded is not None:
+                reason = f"{grounded}: take off first"
+                self.refuse(reason)
+                return reason
+            st = _Stream(
                 "user",
                 sp.p,
                 sp.v,
@@ -271,12 +307,29 @@ class SetpointForwarder:
                 a=sp.a,
                 q=sp.q,
                 thrust=sp.thrust or 0.0,
+                sid=sp.stream,
             )
-            if self._latched is not None:
-                self._held_back(now)
-            elif now - self._last_send >= self.min_gap:
-                self._send(now)
+            h = self._holder
+            if h is not None and h.kind == "stream" and h.sid == sp.stream and self._latched is None:
+                if self._stream is not None and self._stream.source == "goto":
+                    self.events.emit("authority", f"{h.describe()} takes over from goto", 6, stream=h.sid)
+                self._stream = st
+                if now - self._last_send >= self.min_gap:
+                    self._send(now)
+                return None
+            self._pending[sp.stream] = (st, sp.src, now)
+            if len(self._pending) > MAX_PENDING:
+                del self._pending[min(self._pending, key=lambda k: self._pending[k][2])]
+            self.held += 1
+            self.stats.count("setpoints_held")
+            self._held_back(now)
         return None
+
+    def _drop(self, why: str) -> None:
+        """Count and announce a setpoint dropped for its order (one Event per second)."""
+        self.dropped += 1
+        self.stats.reject("setpoint_ended")
+        self.events.emit("authority", f"setpoint dropped: {why}", 5, every=1.0, reason=why)
 
     def _held_back(self, now: float) -> None:
         """Note a user setpoint held back by the latch; warn once the stream has been held back for
@@ -284,15 +337,14 @@ class SetpointForwarder:
         first = now if self._held is None or now - self._held[1] > HELD_BACK_GRACE else self._held[0]
         self._held = (first, now)
         if now - first >= HELD_BACK_GRACE:
+            why = f"offboard was left ({self._latched})" if self._latched else "its stream is not engaged"
             self.events.emit(
-                "safety",
-                f"setpoints held back: offboard was left ({self._latched}); command mode OFFBOARD",
-                4,
-                every=5.0,
+                "safety", f"setpoints held back: {why}; command mode OFFBOARD with the stream", 4, every=5.0
             )
 
-    def start_goto(self, goal: Vec3, yaw: float | None, now: float | None = None) -> None:
-        """Stream toward ``goal`` (checked by the caller) and hold it; releases the latch.
+    def start_goto(self, goal: Vec3, yaw: float | None, now: float | None = None, src: str = "") -> None:
+        """Stream toward ``goal`` (checked by the caller) and hold it: the gateway's goto takes the vehicle
+        (every stream seen so far ends) and the latch is released.
 
         The caller checks the goal and the yaw (:func:`yaw_problem`); a yaw out of range is a ValueError.
         """
@@ -306,6 +358,8 @@ class SetpointForwarder:
         if yaw is None:
             mask |= px4.TYPEMASK_YAW_IGNORE
         with self._lock:
+            self.supersede(f"goto from {src or '?'}", keep_sending=False, src=src)
+            self._holder = Holder("goto", "", src)
             self._latched, self._held = None, None
             self._stream = _Stream("goto", start, None, yaw, None, mask, math.inf, goal)
             self._last_tick = now
@@ -321,22 +375,97 @@ class SetpointForwarder:
                 self._stream = None
                 self._since = math.inf
                 self.events.emit("info", f"goto stream stopped: {reason}", 6)
+            if self._holder is not None and self._holder.kind == "goto":
+                self._holder = None
+
+    def supersede(self, by: str, keep_sending: bool = True, src: str = "") -> None:
+        """A command (``by``: what and from whom) takes the vehicle: every stream seen so far ends, the one
+        holding it included (an Event names both).  With ``keep_sending`` the last setpoint goes on under
+        its lease until the command changes the mode (no gap for PX4's offboard-loss check); no new
+        setpoint of an ended stream is taken.  ``src`` is the command's source (in the Event's data)."""
+        with self._lock:
+            h = self._holder
+            why = f"superseded by {by}"
+            for sid in [*self._pending, *self.ledger.seen()]:
+                self.ledger.end(sid, why)
+            self._pending.clear()
+            if h is not None:
+                if h.kind == "stream":
+                    self.ledger.end(h.sid, why)
+                self.events.emit(
+                    "authority", f"{by} takes the vehicle from {h.describe()}", 6, ended=h.sid, by=src
+                )
+            self._holder = None
+            s = self._stream
+            if s is not None and (not keep_sending or s.source == "goto"):
+                self._stream = None
+                self._since = math.inf
+
+    def engage(self, sid: str | None, src: str, now: float | None = None) -> str | None:
+        """Give the vehicle to stream ``sid`` (None: the newest stream waiting with a live lease) for a
+        ``mode OFFBOARD`` command from ``src``; why not, or None.  The stream holding it before ends; the
+        goto carrot is sent on until the engaged stream's first setpoint arrives."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            if sid is None:
+                live = [(arr, k) for k, (st, _, arr) in self._pending.items() if now <= st.expires]
+                if not live:
+                    return (
+                        "no live setpoint stream: stream setpoints (within their lease) for "
+                        f"{self.prestream:.1f} s first, or use goto"
+                    )
+                sid = max(live)[1]
+            why = self.ledger.ended(sid)
+            if why is not None:
+                return f"stream {sid} has ended ({why}): start a new one"
+            new, prev = Holder("stream", sid, src), self._holder
+            if prev is not None and prev != new:
+                if prev.kind == "stream":
+                    self.ledger.end(prev.sid, f"taken over by {new.describe()}")
+                self.events.emit(
+                    "authority", f"{new.describe()} takes the vehicle from {prev.describe()}", 6,
+                    ended=prev.sid, stream=sid, by=src,
+                )  # fmt: skip
+            self._holder = new
+            self._latched, self._held = None, None
+            pending = self._pending.pop(sid, None)
+            if pending is not None:
+                self._stream = pending[0]
+                self._send(now)
+            elif self._stream is not None and self._stream.source == "user" and self._stream.sid != sid:
+                self._stream = None
+                self._since = math.inf
+        return None
+
+    def snapshot(self) -> tuple[Holder | None, str | None, _Stream | None]:
+        """Who holds the vehicle, the latch and the stream sent: to :meth:`restore` after a failed engage."""
+        with self._lock:
+            return self._holder, self._latched, self._stream
+
+    def restore(self, snap: tuple[Holder | None, str | None, _Stream | None]) -> None:
+        """Put back what :meth:`snapshot` saw (the engaged stream stays ended only if it had ended)."""
+        with self._lock:
+            self._holder, self._latched, self._stream = snap
+            if self._latched is not None or self._stream is None:
+                self._since = math.inf
+
+    @property
+    def holder(self) -> str:
+        """Who holds the vehicle, in words ("" : nobody: the autopilot's own mode)."""
+        h = self._holder
+        return "" if h is None else h.describe()
 
     def latch(self, reason: str) -> None:
-        """Stop sending until :meth:`unlatch` (the vehicle left OFFBOARD, or an estop)."""
+        """Stop sending until a command engages a stream or a goto (the vehicle left OFFBOARD, or an estop)."""
         with self._lock:
             if self._latched is None:
                 self._latched = reason
                 self._since = math.inf
+                self._holder = None
                 if self._stream is not None:
                     if self._stream.source == "goto":
                         self._stream = None
                     self.events.emit("info", f"offboard stream stopped: {reason}", 5)
-
-    def unlatch(self) -> None:
-        """Allow streaming again (an explicit request to engage offboard)."""
-        with self._lock:
-            self._latched, self._held = None, None
 
     @property
     def latched(self) -> str | None:
@@ -367,11 +496,17 @@ class SetpointForwarder:
         with self._lock:
             s = self._stream
             dt, self._last_tick = now - self._last_tick, now
+            for sid in [k for k, (st, _, _) in self._pending.items() if now > st.expires]:
+                del self._pending[sid]
             if s is None:
                 return self.period
             if now > s.expires:
                 self._stream = None
                 self._since = math.inf
+                h = self._holder
+                if h is not None and h.kind == "stream" and h.sid == s.sid:
+                    self.ledger.end(s.sid, "its lease lapsed")
+                    self._holder = None
                 if self._latched is None:
                     self.events.emit(
                         "safety",
@@ -424,6 +559,22 @@ class SetpointForwarder:
             self._last_send = now
             self.sent += 1
             self.stats.count("setpoints")
+
+    def guard(self, closing: Closing, offboard: bool) -> None:
+        """The vehicle heads for another (``closing``): when the arena flies it (OFFBOARD), take it from
+        whoever holds it and command Hold at once; in the autopilot's own modes, warn."""
+        text = closing.describe(self.separation.min_separation if self.separation else 0.0)
+        if not offboard:
+            self.events.emit("safety", f"separation: {text}", 4, every=2.0, other=closing.other)
+            return
+        with self._lock:
+            self.supersede(f"the separation guard ({closing.other})", keep_sending=False)
+            self._latched = self._latched or f"held apart from {closing.other}"
+        self._hold_now()
+        self.events.emit(
+            "safety", f"held before meeting {text}: commanded Hold (AUTO.LOITER)", 3, every=0.5,
+            other=closing.other,
+        )  # fmt: skip
 
     def _hold_now(self) -> None:
         """Ask PX4 for Hold at once (DO_SET_MODE AUTO.LOITER, twice against a lost packet), without

@@ -235,6 +235,17 @@ class VehicleState:
     def yaw(self) -> float | None:
         return quat_yaw(self.q) if self.q is not None else None
 
+    def flight_problem(self) -> str | None:
+        """Why the vehicle cannot be flown by setpoints or OFFBOARD now (disarmed, on the ground,
+        landing), or None: ``takeoff`` is the way up."""
+        if not self.armed:
+            return "disarmed"
+        if self.landed in ("on_ground", "undefined"):
+            return "on the ground"
+        if self.landed == "landing" or self.mode == "AUTO.LAND":
+            return "landing"
+        return None
+
     def wait(self, predicate: Callable[[], bool], deadline: float) -> bool:
         """Wait until ``predicate()`` (checked on every heartbeat or position) or the monotonic deadline."""
         with self.cond:

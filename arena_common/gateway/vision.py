@@ -25,6 +25,10 @@ class VisionSender:
     pose's ``rc`` changes, when the position jumps (more than ``jump_m`` and faster than ``jump_speed``),
     or on :meth:`bump_reset` (a calibration change).
 
+    Every pose offered is counted, and every one refused since the last one sent is counted by reason (the
+    ages of those refused as too old, the lead of those from the future kept), so that :meth:`problem` can
+    say why no pose reached the autopilot: none arrived (for how long), or they arrived and were refused.
+
     A pose's ``t`` is on the mocap host's clock.  ``offset_ns`` (when given) returns that clock minus
     ours (:class:`~arena_common.runtime.clock.ClockSync`, None while unknown): ages are judged, and
     ODOMETRY's ``time_usec`` stamped, on our clock — the one TIMESYNC shares with the autopilot — whatever
@@ -45,6 +49,7 @@ class VisionSender:
         max_speed: float = 1e3,
         stats: Stats | None = None,
         offset_ns: Callable[[], int | None] | None = None,
+        source: str = "the vision key",
     ) -> None:
         if message not in ("odometry", "vision_position_estimate"):
             raise GatewayError(
@@ -68,6 +73,14 @@ class VisionSender:
         self.last_sent_mono = -math.inf
         self._last_rc: int | None = None
         self._times: collections.deque[float] = collections.deque(maxlen=1024)
+        self.source = source  # where the poses come from, named when none arrives
+        self.arrived = 0  # poses offered (and samples refused as no pose), ever
+        self.last_arrival_mono = -math.inf
+        # Since the last pose sent (what explains a stale vision): refusals by reason, the least and the
+        # most age of the poses refused as too old, the most lead of those from the future (ns).
+        self._refused: dict[str, int] = {}
+        self._late_ns = (0, 0)
+        self._ahead_ns = 0
 
     def bump_reset(self) -> None:
         """Tell the autopilot the next pose jumps (new calibration, re-acquired body)."""
@@ -75,6 +88,31 @@ class VisionSender:
 
     def offer(self, pose: wire.Pose, now_ns: int | None = None) -> str | None:
         """Send ``pose`` if it may be sent; the reason it was not, else None."""
+        self.arrived += 1
+        self.last_arrival_mono = time.monotonic()
+        reason = self._send(pose, now_ns)
+        if reason is not None:
+            self._note(reason, pose, now_ns)
+        return reason
+
+    def refused(self, reason: str) -> None:
+        """Count a sample that arrived on the vision key and was refused before it became a pose."""
+        self.arrived += 1
+        self.last_arrival_mono = time.monotonic()
+        self._refused[reason] = self._refused.get(reason, 0) + 1
+
+    def _note(self, reason: str, pose: wire.Pose, now_ns: int | None) -> None:
+        self._refused[reason] = self._refused.get(reason, 0) + 1
+        if reason in ("stale", "from the future"):
+            age = (wire.now_ns() if now_ns is None else now_ns) - (pose.t - self.correction())
+            if reason == "from the future":
+                self._ahead_ns = max(self._ahead_ns, -age)
+            elif self._refused[reason] == 1:
+                self._late_ns = (age, age)
+            else:
+                self._late_ns = (min(self._late_ns[0], age), max(self._late_ns[1], age))
+
+    def _send(self, pose: wire.Pose, now_ns: int | None) -> str | None:
         if not pose.ok:
             return "not tracked"
         clock_given = now_ns is not None
@@ -138,6 +176,8 @@ class VisionSender:
         self.last_usec = usec
         self.last_p = p
         self.sent += 1
+        if self._refused:
+            self._refused, self._ahead_ns = {}, 0
         mono = time.monotonic()
         self.last_sent_mono = mono
         self._times.append(mono)
@@ -172,3 +212,54 @@ class VisionSender:
     def age(self, now: float) -> float | None:
         """Seconds since the last pose was sent (None before the first)."""
         return None if self.sent == 0 else now - self.last_sent_mono
+
+    def problem(self, now: float, limit: float) -> str | None:
+        """Why no pose has reached the autopilot for more than ``limit`` s (at monotonic time ``now``), naming
+        its cause; None while one has."""
+        age = self.age(now)
+        if age is not None and age <= limit:
+            return None
+        head = (
+            "no vision pose sent to the autopilot yet"
+            if age is None
+            else f"vision stale: last pose sent {age:.2f} s ago"
+        )
+        return f"{head}: {self.why(now, limit)}"
+
+    def why(self, now: float, limit: float) -> str:
+        """What became of the poses since the last one sent: none arrived (for how long), or each arrived
+        and was refused, by reason with its figures."""
+        refused = dict(self._refused)  # one copy: the Zenoh thread may count meanwhile
+        silent = now - self.last_arrival_mono
+        if self.arrived == 0:
+            return (
+                f"no pose has arrived on {self.source} (the mocap not streaming, the body not tracked, or a "
+                "stage before the gateway down: `arena top` shows where the poses stop)"
+            )
+        hint = "the mocap stopped, the body is not tracked, or a stage before the gateway stalls"
+        hint += ": `arena top` shows where the poses stop"
+        if not refused:
+            return f"no pose has arrived on {self.source} for {silent:.2f} s ({hint})"
+        n = sum(refused.values())
+        texts = [self._refusal_text(r, k) for r, k in sorted(refused.items(), key=lambda rk: -rk[1])]
+        since = " since" if self.sent else ""
+        said = [f"{n} pose{'s' if n > 1 else ''} arrived{since}, none sent: {'; '.join(texts)}"]
+        if silent > limit:
+            said.append(f"the last one {silent:.2f} s ago ({hint})")
+        return "; ".join(said)
+
+    def _refusal_text(self, reason: str, n: int) -> str:
+        if reason == "stale":
+            lo, hi = (round(x * 1e-6) for x in self._late_ns)
+            ages = f"{hi} ms" if lo == hi else f"{lo}–{hi} ms"
+            return (
+                f"{n} too old ({ages} after their measurement, more than the {self.max_age_ns * 1e-6:.0f} ms "
+                "allowed: the pipeline runs late, a busy computer?)"
+            )
+        if reason == "from the future":
+            return f"{n} stamped up to {self._ahead_ns * 1e-6:.0f} ms ahead of this host's clock (the clocks disagree)"
+        if reason == "not tracked":
+            return f"{n} not tracked (the mocap lost the body)"
+        if reason == "link down":
+            return f"{n} not sent: the link to the autopilot is down"
+        return f"{n} {reason}"

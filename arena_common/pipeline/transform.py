@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from arena_common.bus.session import Lane
+from arena_common.bus.session import Lane, Publisher
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.geometry.filters import VelocityEstimator
@@ -21,8 +21,9 @@ from arena_common.geometry.frames import IDENTITY_QUAT, Calibration, FrameError,
 from arena_common.pipeline.vision import VisionFilter, account
 from arena_common.runtime.service import Service
 
-__all__ = ["Decimators", "PoseConverter", "frame_transform"]
+__all__ = ["FLEET_RATE", "Decimators", "FleetPublisher", "PoseConverter", "frame_transform"]
 
+FLEET_RATE = 10.0  # Hz of arena/sys/fleet: every vehicle's position, for the gateways' separation
 VELOCITY_CUTOFF_HZ = 15.0
 VELOCITY_MAX_GAP_S = 0.1
 _ZERO3: wire.Vec3 = (0.0, 0.0, 0.0)
@@ -114,3 +115,37 @@ class Decimators:
         if d.vision is not None:
             self.publishers[drone].put(d.vision)
             self.svc.stats.count("vision")
+
+
+class FleetPublisher:
+    """Gathers each vehicle's newest tracked pose and publishes them all as one
+    :class:`~arena_common.core.wire.Fleet` on ``arena/sys/fleet`` at ``rate`` Hz: what every gateway
+    reads to keep its vehicle apart from the others (one subscription each, whatever the fleet's size)."""
+
+    def __init__(self, publisher: Publisher[wire.Fleet], rate: float = FLEET_RATE) -> None:
+        self.publisher = publisher
+        self.period_ns = int(1e9 / rate)
+        self._latest: dict[str, wire.Pose] = {}
+        self._next_ns = 0
+        self.published = 0
+
+    def offer(self, drone: str, pose: wire.Pose) -> None:
+        """Note ``drone``'s pose (an untracked one removes the vehicle until it is tracked again)."""
+        if pose.ok:
+            self._latest[drone] = pose
+        else:
+            self._latest.pop(drone, None)
+
+    def tick(self, now_ns: int) -> wire.Fleet | None:
+        """Publish when due (``now_ns`` on any monotonic-enough clock); the message sent, or None."""
+        if now_ns < self._next_ns or not self._latest:
+            return None
+        self._next_ns = now_ns + self.period_ns
+        latest = self._latest
+        fleet = wire.Fleet(
+            t=max(p.t for p in latest.values()),
+            b=tuple(wire.FleetVehicle(n, p.p, p.v if p.vok else _ZERO3) for n, p in latest.items()),
+        )
+        self.publisher.put(fleet)
+        self.published += 1
+        return fleet

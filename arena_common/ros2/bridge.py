@@ -14,9 +14,12 @@ library (:class:`~arena_common.client.vehicle.Vehicle`), so the gateway's safety
 - ``/arena/<d>/cmd_vel`` (geometry_msgs/msg/Twist, body FLU as REP 103 wants: ``linear.x`` forward,
   ``linear.y`` left, ``linear.z`` up, ``angular.z`` yaw rate counter-clockwise): an offboard velocity
   stream (:class:`~arena_common.client.offboard.OffboardStream`, body velocity, 20 Hz, 0.5 s leases)
-  that engages OFFBOARD at the first message; when no Twist came for :data:`CMD_VEL_TIMEOUT` s the
-  stream ends and the vehicle holds where it is (AUTO.LOITER).  A Twist beyond ``max_speed``,
-  ``max_climb`` or the yaw-rate limit is refused and the stream flies zero velocity instead.
+  that engages OFFBOARD once, at the first Twist; the newest Twist only is flown (one slot, never a
+  queue: a Twist that waited behind a slow engage is replaced, not replayed).  When no Twist has
+  *arrived* for :data:`CMD_VEL_TIMEOUT` s (arrival times, taken as each Twist comes in, whatever the
+  engage takes) the stream ends once and the vehicle holds where it is (AUTO.LOITER); only a Twist that
+  arrives after that starts a new stream.  A Twist beyond ``max_speed``, ``max_climb`` or the yaw-rate
+  limit is refused the moment it arrives and the stream flies zero velocity instead.
 
 Every refusal is logged with its reason, counted (``refused``) and published on ``/rosout`` (WARN).
 """
@@ -63,34 +66,61 @@ class BridgeOptions:
 
 
 class _Commands:
-    """One vehicle's ROS 2 commands, handled in order on its own thread."""
+    """One vehicle's ROS 2 commands, handled in order on its own thread: gotos in a short queue, Twists
+    in one slot that keeps the newest (checked as it arrives)."""
 
     def __init__(self, bridge: Bridge, vehicle: Vehicle) -> None:
         self.bridge = bridge
         self.vehicle = vehicle
-        self.queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=64)
+        self.queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=16)
         self.stream: OffboardStream | None = None
-        self.last_twist = 0.0
+        self._lock = threading.Lock()
+        self._twist: tuple[float, tuple[float, float, float], float] | None = None  # arrival, body, yr
+        self.last_twist = -math.inf  # arrival (monotonic) of the newest accepted Twist
+        self.engaged = 0  # velocity streams started (each engages OFFBOARD once)
         self.thread = threading.Thread(target=self._run, name=f"ros2:{vehicle.name}", daemon=True)
         self.thread.start()
 
     def put(self, kind: str, msg: Any) -> None:
+        if kind == "twist":
+            self._offer_twist(msg)
+            return
         try:
             self.queue.put_nowait((kind, msg))
         except queue.Full:
             self.bridge.refuse(self.vehicle.name, kind, "too many commands waiting: dropped")
 
+    def _offer_twist(self, msg: Any) -> None:
+        """On the subscriber's thread: check the Twist at once; keep it as the newest, or refuse it."""
+        now = time.monotonic()
+        body = (msg.linear.x, -msg.linear.y, -msg.linear.z)  # FLU → FRD
+        yr = -msg.angular.z
+        problem = None
+        if not all(math.isfinite(x) for x in (*body, yr)):
+            problem = "velocity not finite"
+        else:
+            problem = setpoint_problem(self.vehicle, {"v": body, "yr": yr})
+        with self._lock:
+            if problem is None:
+                self._twist, self.last_twist = (now, body, yr), now
+            elif self.stream is not None:  # hover rather than fly on; the stream still ends on time
+                self._twist = (now, (0.0, 0.0, 0.0), 0.0)
+        if problem is not None:
+            self.bridge.refuse(self.vehicle.name, "cmd_vel", problem)
+
     def _run(self) -> None:
         while not self.bridge.stopping.is_set():
             try:
-                kind, msg = self.queue.get(timeout=0.05)
+                kind, msg = self.queue.get(timeout=0.02)
             except queue.Empty:
                 kind, msg = "", None
             try:
                 if kind == "goto":
                     self._goto(msg)
-                elif kind == "twist":
-                    self._twist(msg)
+                with self._lock:
+                    twist, self._twist = self._twist, None
+                if twist is not None:
+                    self._fly(twist)
                 self._watchdog()
             except Exception as exc:  # one bad command must not end the vehicle's command thread
                 self.bridge.refuse(self.vehicle.name, kind or "stream", f"{type(exc).__name__}: {exc}")
@@ -132,20 +162,10 @@ class _Commands:
         self.bridge.accepted(name, "goto", f"goto {p[0]:.2f} {p[1]:.2f} {p[2]:.2f} (NED): {res.result}")
 
     # -- cmd_vel ---------------------------------------------------------------------------------------
-    def _twist(self, msg: Any) -> None:
+    def _fly(self, twist: tuple[float, tuple[float, float, float], float]) -> None:
+        """Fly the newest Twist: on the running stream, or by starting one (engaged once)."""
         name = self.vehicle.name
-        body = (msg.linear.x, -msg.linear.y, -msg.linear.z)  # FLU → FRD
-        yr = -msg.angular.z
-        if not all(math.isfinite(x) for x in (*body, yr)):
-            self.bridge.refuse(name, "cmd_vel", "velocity not finite")
-            return
-        problem = setpoint_problem(self.vehicle, {"v": body, "yr": yr})
-        if problem is not None:
-            self.bridge.refuse(name, "cmd_vel", problem)
-            if self.stream is not None:
-                self.stream.velocity_body(0.0, 0.0, 0.0, yaw_rate=0.0)  # hover rather than fly on
-            return
-        self.last_twist = time.monotonic()
+        _, body, yr = twist
         if self.stream is not None:
             try:
                 self.stream.velocity_body(*body, yaw_rate=yr)
@@ -156,12 +176,13 @@ class _Commands:
         stream = self.vehicle.offboard(rate=20.0, lease=0.5, engage=True)
         try:
             stream.velocity_body(*body, yaw_rate=yr)
-            stream.__enter__()  # streams, then asks for OFFBOARD
+            stream.__enter__()  # streams, then engages this stream (mode OFFBOARD naming it)
         except ArenaError as exc:
             stream.close()
             self.bridge.refuse(name, "cmd_vel", str(exc))
             return
         self.stream = stream
+        self.engaged += 1
         self.bridge.accepted(name, "cmd_vel", "velocity stream started: OFFBOARD")
 
     def _watchdog(self) -> None:
@@ -178,7 +199,9 @@ class _Commands:
             self.bridge.accepted(self.vehicle.name, "cmd_vel", "no Twist for 0.5 s: holding")
 
     def _end_stream(self) -> None:
-        stream, self.stream = self.stream, None
+        with self._lock:
+            stream, self.stream = self.stream, None
+            self._twist = None  # a Twist that arrived before the stream's end starts nothing
         if stream is not None:
             try:
                 stream.__exit__(None, None, None)  # Hold where it is, then stop streaming

@@ -315,3 +315,36 @@ class StopSignals:
 
     def __exit__(self, *exc: object) -> None:
         self.restore()
+
+
+def lead_own_session(death_signal: int = signal.SIGKILL) -> None:
+    """Make this command the leader of a session of its own: unless it already is one (Linux only), run it
+    again — the same interpreter and command line — as the leader of a new session, pass it every stop
+    signal, and exit with its status.  For a command's entry point, before it does anything.
+
+    Linux's autogroup scheduling (on by default in most distributions) shares the CPU between sessions first
+    and weighs a niceness only among the processes of one session, so a process that yields the CPU must
+    lower its session's group (:func:`~arena_common.runtime.service.yield_cpu`).  A command typed in a
+    terminal shares its shell's session: lowering that group would lower the terminal's every other job too,
+    so the command moves to a session of its own first.  Every process ``arena up`` starts already leads one.
+
+    The new leader keeps this process's input and output; SIGINT, SIGTERM and SIGHUP (unless ignored:
+    ``nohup``) go on to it, and the kernel sends it ``death_signal`` should this process die.
+    """
+    if not sys.platform.startswith("linux") or os.getsid(0) == os.getpid():
+        return
+    child = subprocess.Popen(
+        [sys.executable, *sys.orig_argv[1:]],
+        start_new_session=True,
+        preexec_fn=child_setup(os.getpid(), death_signal),
+    )
+
+    def relay(signum: int, frame: FrameType | None) -> None:
+        child.send_signal(signum)  # a no-op once it has exited
+
+    for sig in STOP_SIGNALS:
+        if sig == signal.SIGHUP and signal.getsignal(sig) == signal.SIG_IGN:
+            continue  # nohup: the user asked it to outlive its terminal
+        signal.signal(sig, relay)
+    code = child.wait()
+    raise SystemExit(128 - code if code < 0 else code)

@@ -26,6 +26,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from arena_common.bus.hosts import host_bus_options, host_name
@@ -193,6 +194,7 @@ class Service:
 
 
 BACKGROUND_NICE = 10  # added to the niceness of a process the vehicles do not depend on
+AUTOGROUP = Path("/proc/self/autogroup")  # this session's scheduling group (Linux autogroup scheduling)
 
 
 def yield_cpu(log: logging.Logger | None = None) -> int:
@@ -201,6 +203,13 @@ def yield_cpu(log: logging.Logger | None = None) -> int:
     For processes no vehicle depends on (the recorder, the live viewer): on a computer that cannot keep
     up, the kernel then gives the CPU to the vision pipeline (ingest, transform, downsamplers, gateways)
     first, and these fall behind and shed (counted) instead.
+
+    Linux's autogroup scheduling (on by default in most distributions) shares the CPU between sessions
+    first and weighs a niceness only among the processes of one session — and every process ``arena up``
+    starts leads a session of its own.  A niceness alone then changes nothing: the viewer took as much of
+    the CPU as each stage of the pipeline, and vision went stale.  So a process that leads its session
+    (:func:`~arena_common.runtime.process.lead_own_session`) lowers its session's group by as much
+    (``/proc/self/autogroup``); one that does not says so in the log.
     """
     try:
         value = os.nice(BACKGROUND_NICE)
@@ -208,9 +217,37 @@ def yield_cpu(log: logging.Logger | None = None) -> int:
         if log is not None:
             log.warning("cannot lower this process's CPU priority: %s", exc)
         return os.nice(0)
+    problem = _lower_session_group(BACKGROUND_NICE)
     if log is not None:
-        log.info("running at CPU niceness %d: the vision pipeline goes first", value)
+        if problem is None:
+            log.info("running at CPU niceness %d: the vision pipeline goes first", value)
+        else:
+            log.warning(
+                "running at CPU niceness %d, but %s: the vision pipeline may wait for it", value, problem
+            )
     return value
+
+
+def _lower_session_group(nice: int) -> str | None:
+    """Give this process's session group (its autogroup) a niceness of at least ``nice``; why it could
+    not, or None (done, or no autogroup scheduling here: the niceness is enough)."""
+    if os.getsid(0) != os.getpid():
+        return "its session's CPU share stays as it was (it does not lead its session)"
+    try:
+        current = int(AUTOGROUP.read_text().split()[-1])  # "/autogroup-42 nice 0"
+    except (OSError, ValueError, IndexError):
+        return None  # not Linux, or a kernel without autogroup scheduling
+    if current >= nice:
+        return None
+    for _ in range(10):
+        try:
+            AUTOGROUP.write_text(str(nice))
+            return None
+        except BlockingIOError:  # EAGAIN: the kernel allows one such change every 100 ms, machine-wide
+            time.sleep(0.11)
+        except OSError as exc:
+            return f"its session's CPU share stays as it was ({exc})"
+    return "its session's CPU share stays as it was (the kernel kept refusing the change)"
 
 
 def exit_now(log: logging.Logger, signum: int) -> None:

@@ -7,8 +7,19 @@ the truth).  PX4 boots as `arena px4 setup` leaves a lab's vehicle (``EKF2_DELAY
 ``EKF2_TAU_POS``/``_VEL`` 0.1 s among the rest).  The targets and what holds instead (docs/px4.md, "Issue 25:
 the arena's EKF2 horizon and output predictor"):
 
-- the arena's part — the vision PX4 receives, at its own ``timestamp_sample``, vs the truth — is within
-  30 ms and 2 cm (measured −7…+15 ms, 0.5–0.6 cm rms): the target for it is met and asserted;
+- the arena's part — the vision PX4 receives, at the time the arena stamped it, vs the truth — is within
+  30 ms and 2 cm: the target for it is met and asserted.  PX4's ``timestamp_sample`` is that stamp mapped
+  by PX4's TIMESYNC estimate, so the lag read at it also holds PX4's own mapping error: measured −7…+15 ms
+  over a round of runs, then −32 ms once.  A negative lag (the vision "before" the truth) cannot come
+  from the arena: on one computer the stamp it gives a pose is never earlier than the instant SIH computed
+  it (the truth bridge stamps its arrival; the ingest's ECHO clock errs by at most half its fastest
+  loopback round trip), and the arena's own TIMESYNC answers stay in the figure.  It is PX4's
+  filter (``src/lib/timesync``): after its 500 first answers it follows them with gains of 0.003 (~33 s),
+  which keep up with a steady clock skew but not with a change of it, and SITL's clock runs slower as the
+  machine is loaded (0.8 %, docs/px4.md); a change of 0.1 % (0.2 %) during the flight, which begins right
+  as PX4 converges, leaves its estimate up to 18 (36) ms off.  So the target is asserted on the lag with
+  PX4's own error — its estimate minus its answers, ``timesync_status`` in its log — taken out
+  (:func:`tools.ulog_report.timesync_error`); the lag as PX4 stamped it and PX4's error are printed;
 - PX4's estimate within 30 ms of the mocap pose: not met on SIH.  ``vehicle_local_position`` trails the
   vision PX4 was given by 70–95 ms (190–195 ms with PX4's default horizon and output predictor), fed by
   the arena or straight from SIH's truth alike: PX4's log shows the vision fused healthily (innovations
@@ -42,7 +53,7 @@ from tests.px4.harness import FlightRecord, timesync_converged
 from tools.ulog_report import analyse, read_ulog, render
 
 HEIGHT = 1.0
-VISION_LAG_MAX_MS = 30.0  # the arena's part: the target, met
+VISION_LAG_MAX_MS = 30.0  # the arena's part (PX4's TIMESYNC error taken out): the target, met
 VISION_RMS_MAX_M = 0.02
 ESTIMATE_LAG_MAX_MS = 150.0  # target 30 ms; PX4 on SIH: 70-95 ms measured
 HOVER_P50_MAX_M = 0.20  # target 0.05 m; measured 0.07-0.11
@@ -93,9 +104,13 @@ def test_flight_targets_from_px4s_log(px4_arena: PX4ArenaFactory, tmp_path: Path
     assert abs(report.hover_height_m - HEIGHT) <= TAKEOFF_TOL_M, report  # and it stays there
     assert took <= TAKEOFF_MAX_S, took
     assert report.timesync_from_s is not None, report
-    vision = report.vision_vs_truth
-    assert vision is not None and abs(vision.ms) <= VISION_LAG_MAX_MS and vision.rms_m <= VISION_RMS_MAX_M, (
-        vision
+    # The arena's part: PX4's own TIMESYNC tracking error is not the arena's (module docstring).
+    vision = report.vision_vs_truth_synced
+    assert vision is not None, f"no timesync_status answers in PX4's log: {report}"
+    assert abs(vision.ms) <= VISION_LAG_MAX_MS and vision.rms_m <= VISION_RMS_MAX_M, (
+        vision,
+        report.vision_vs_truth,
+        report.timesync_error_ms,
     )
     estimate = report.estimate_vs_vision
     assert estimate is not None and estimate.ms <= ESTIMATE_LAG_MAX_MS, estimate

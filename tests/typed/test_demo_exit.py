@@ -28,6 +28,10 @@ pytestmark = [
 ]
 
 FLYING_S = 150.0  # the arena up, the vehicle ready and in the air, on a busy 2-core machine
+# `arena demo` says it waits for the vehicles once its router listens (3.6 s on an idle 2-core machine, 13.4 s
+# loaded: load average 5) and its session is open; it gives up by itself, saying why, after its own
+# --ready-timeout (90 s and 2 s a vehicle): the test's bound is the demo's, plus its error.
+READY_S = 90.0 + 2.0 + 15.0
 LANDED_S = 45.0  # the landing (at most --land-timeout, 10 s) and the arena's stop
 
 
@@ -90,7 +94,7 @@ def test_a_demo_stopped_while_the_arena_starts(tmp_path: Path, typed: Callable[.
     """Ctrl-C twice while nothing flies yet: no landing to wait for, everything stops."""
     cfg = _config(tmp_path)
     cmd = typed("demo", str(cfg.path), "--log", str(tmp_path / "demo.log"))
-    cmd.wait_line(r"waiting for x7", timeout=60)
+    cmd.wait_line(r"waiting for x7", timeout=READY_S)
     wait_for(lambda: len(leftovers([str(cfg.path)])) >= 3, timeout=60, what="the arena's services starting")
     cmd.signal(signal.SIGINT)
     cmd.wait_line(r"no vehicle in the air|stopping the arena", timeout=15)

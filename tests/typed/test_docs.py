@@ -37,6 +37,7 @@ from websockets.typing import Subprotocol
 
 from arena_common import Arena
 from arena_common.bus.session import Bus
+from arena_common.core.config import load
 from arena_common.core.waiting import wait_until
 from arena_common.runtime.px4_sitl import (
     Px4SitlError,
@@ -45,6 +46,7 @@ from arena_common.runtime.px4_sitl import (
     is_true,
     listener,
 )
+from arena_common.runtime.supervisor import endpoint_address
 from tests.helpers import REPO, free_port, wait_for
 from tests.typed.harness import (
     START_S,
@@ -148,7 +150,19 @@ def lab_config(directory: Path) -> Path:
 
 def wait_ready(config: Path, names: Sequence[str], up: Command, timeout: float = READY_S) -> None:
     """Until every vehicle of ``names`` has its link, its setup and vision fused (what a reader sees in
-    ``arena status`` before typing the next command); ``up`` must keep running."""
+    ``arena status`` before typing the next command); ``up`` must keep running.
+
+    The session is a Zenoh client, which gives up after 10 s without its router, and ``arena up`` starts its
+    router only after its own presence (3.6 s after it starts on an idle 2-core machine, 13.4 s loaded: load
+    average 5): it opens once the router listens."""
+    ports = [a[1] for e in load(config).zenoh.connect if (a := endpoint_address(e)) is not None]
+    wait_until(
+        lambda: any(bound("tcp", port) for port in ports),
+        timeout,
+        f"the router listening on tcp {ports}",
+        interval=0.1,
+        check=up.running,
+    )
     with Arena(config, name="typed-docs") as arena:
         vehicles = [arena.vehicle(n) for n in names]
         wait_until(

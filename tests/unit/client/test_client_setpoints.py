@@ -30,11 +30,15 @@ def test_acceleration_feed_forward_reaches_the_vehicle_and_over_limit_never(
     port = int(rig.cfg.vehicle("d1").mavlink.rsplit(":", 1)[1])
     rig.start_gateway("d1")
     wait_for(lambda: rig.cmd("d1", "ping", timeout=1.0).ok, 10.0, what="gateway answers")
-    vehicle = MavPeer(f"udpout:127.0.0.1:{port}", 1)
+    vehicle = MavPeer(f"udpout:127.0.0.1:{port}", 1, airborne=True)
     try:
         rig.wait_ready("d1")
+        wait_for(lambda: rig.gateways["d1"].state.flight_problem() is None, 5.0, what="armed, in the air")
         pub = rig.bus.stream_publisher(keys.setpoint("d1"), wire.Setpoint)
-        too_hard = wire.Setpoint(t=wire.now_ns(), p=(0.0, 0.0, -1.0), a=(0.0, 6.0, 0.0))
+        # The gateway engages the stream as a mode OFFBOARD command naming it would (the peer answers no
+        # command): what reaches the vehicle is what this test judges.
+        assert rig.gateways["d1"].forwarder.engage("s1", "test") is None
+        too_hard = wire.Setpoint(t=wire.now_ns(), p=(0.0, 0.0, -1.0), a=(0.0, 6.0, 0.0), stream="s1", seq=1)
         pub.put(too_hard)
         rig.wait_event(
             "d1",
@@ -45,7 +49,14 @@ def test_acceleration_feed_forward_reaches_the_vehicle_and_over_limit_never(
         time.sleep(0.3)
         assert vehicle.of("SET_POSITION_TARGET_LOCAL_NED") == []
         sp = wire.Setpoint(
-            t=wire.now_ns(), p=(1.0, 0.5, -1.0), v=(0.2, 0.0, 0.0), a=(0.5, -0.25, 0.1), yaw=0.3, lease=0.3
+            t=wire.now_ns(),
+            p=(1.0, 0.5, -1.0),
+            v=(0.2, 0.0, 0.0),
+            a=(0.5, -0.25, 0.1),
+            yaw=0.3,
+            lease=0.3,
+            stream="s1",
+            seq=2,
         )
         pub.put(sp)
         wait_for(lambda: vehicle.of("SET_POSITION_TARGET_LOCAL_NED"), 3.0, what="setpoint sent")

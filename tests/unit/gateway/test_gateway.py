@@ -27,6 +27,7 @@ from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
 from arena_common.gateway.gateway import Gateway, GatewayOptions
 from arena_common.mavlink import px4
+from arena_common.pipeline.transform import FleetPublisher
 from arena_common.runtime.service import running
 from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock
 from tests.helpers import wait_for
@@ -79,6 +80,8 @@ class Rig:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._vision = {name: bus.stream_publisher(keys.vision(name), wire.Pose) for name in self.aps}
+        # The frame transform's fleet message (every vehicle's position, 10 Hz): the gateways' separation.
+        self.fleet = FleetPublisher(bus.stream_publisher(keys.FLEET, wire.Fleet))
         self.state_count.update(dict.fromkeys(cfg.vehicles, 0))
         self._state_sub = bus.subscribe("arena/*/state", capacity=256, ring=True)
         self._event_sub = bus.subscribe("arena/*/events", capacity=10_000, ring=False)
@@ -106,6 +109,8 @@ class Rig:
                         rc=self.rc[name],
                     )
                     self._vision[name].put(pose)
+                    self.fleet.offer(name, pose)
+            self.fleet.tick(time.monotonic_ns())
 
     def _collect(self) -> None:
         while not self._stop.is_set():
@@ -244,9 +249,11 @@ def rig_factory(
         speed: float = SPEED,
         extra: str = "",
         simulate: bool = True,
+        ideal: bool = True,
+        spacing: float = 1.0,
     ) -> Rig:
-        cfg = arena_config(n_vehicles=n_vehicles, extra=extra, speed=speed)
-        rig = Rig(cfg, bus_factory(), speed=speed, params=params, simulate=simulate)
+        cfg = arena_config(n_vehicles=n_vehicles, extra=extra, speed=speed, spacing=spacing)
+        rig = Rig(cfg, bus_factory(), speed=speed, params=params, simulate=simulate, ideal=ideal)
         rigs.append(rig)
         if start:
             for name in cfg.vehicles:
@@ -395,9 +402,9 @@ def test_command_refusals_errors_and_params(make_rig: Callable[..., Rig]) -> Non
     rig.feeding["d1"] = True
     rig.wait_state("d1", lambda s: s.vis_fused, 5.0, "fused")
     res = rig.cmd("d1", "mode", mode="OFFBOARD")
-    assert res.result == "REFUSED" and "no live setpoint stream" in res.reason
+    assert res.result == "REFUSED" and "disarmed: take off first" in res.reason
     res = rig.cmd("d1", "goto", p=[0.0, 0.0, -1.0])
-    assert res.result == "REFUSED" and "not armed" in res.reason
+    assert res.result == "REFUSED" and "disarmed: take off first" in res.reason
     res = rig.cmd("d1", "goto", p=[9.0, 0.0, -1.0])
     assert res.result == "REFUSED" and "outside the safe volume" in res.reason and "north 9.00" in res.reason
     res = rig.cmd("d1", "takeoff", height=5.0)
@@ -434,12 +441,19 @@ class MavPeer:
     """A plain pymavlink endpoint playing a vehicle or a ground station: sends heartbeats, records input."""
 
     def __init__(
-        self, url: str, sysid: int, compid: int = 1, *, autopilot: int = px4.MAV_AUTOPILOT_PX4
+        self,
+        url: str,
+        sysid: int,
+        compid: int = 1,
+        *,
+        autopilot: int = px4.MAV_AUTOPILOT_PX4,
+        airborne: bool = False,
     ) -> None:
         self.conn = mavutil.mavlink_connection(
             url, source_system=sysid, source_component=compid, dialect="common"
         )
         self.autopilot = autopilot
+        self.airborne = airborne  # armed and in the air (heartbeat, EXTENDED_SYS_STATE)
         self.received: list[Any] = []
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -451,9 +465,11 @@ class MavPeer:
             if time.monotonic() >= next_hb:
                 next_hb = time.monotonic() + 0.25
                 mode = px4.encode_custom_mode(px4.MAIN_AUTO, px4.AUTO_LOITER)
-                self.conn.mav.heartbeat_send(
-                    px4.MAV_TYPE_QUADROTOR, self.autopilot, 1, mode, px4.MAV_STATE_STANDBY
-                )
+                base = 1 | (128 if self.airborne else 0)  # custom mode enabled, safety armed
+                state = px4.MAV_STATE_ACTIVE if self.airborne else px4.MAV_STATE_STANDBY
+                self.conn.mav.heartbeat_send(px4.MAV_TYPE_QUADROTOR, self.autopilot, base, mode, state)
+                if self.airborne:
+                    self.conn.mav.extended_sys_state_send(0, 2)  # MAV_LANDED_STATE_IN_AIR
             select.select([self.conn.port], [], [], 0.01)
             for _ in range(1000):
                 msg = self.conn.recv_msg()

@@ -24,16 +24,20 @@ from tests.unit.gateway.test_gateway import ARENA_PARAMS, SPEED, MavPeer, Rig, r
 class SetpointStream:
     """A user program streaming one setpoint at 20 Hz until stopped."""
 
-    def __init__(self, bus: Bus, drone: str, **fields: object) -> None:
+    def __init__(self, bus: Bus, drone: str, stream: str = "test-stream", **fields: object) -> None:
         self.pub = bus.stream_publisher(keys.setpoint(drone), wire.Setpoint)
         self.fields = fields
+        self.stream = stream
+        self.seq = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         while not self._stop.wait(0.05):
-            self.pub.put(wire.Setpoint(t=wire.now_ns(), src="test", **self.fields))  # type: ignore[arg-type]
+            self.seq += 1
+            sp = wire.Setpoint(t=wire.now_ns(), src="test", stream=self.stream, seq=self.seq, **self.fields)  # type: ignore[arg-type]
+            self.pub.put(sp)
 
     def stop(self) -> None:
         self._stop.set()
@@ -44,16 +48,18 @@ def test_user_setpoints_lease_expiry_lands_and_offboard_never_reengages(make_rig
     rig = make_rig()
     ap = rig.aps["d1"]
     n, e, _ = ap.true_pose().position
-    rig.wait_state("d1", lambda s: s.vis_fused and s.setup_ok, 10.0, "ready")
-    user = SetpointStream(rig.bus, "d1", p=(n, e, -1.0), yaw=0.0, lease=0.5)
+    rig.fly("d1", 0.8)
+    user = SetpointStream(rig.bus, "d1", stream="prog-1", p=(n, e, -1.0), yaw=0.0, lease=0.5)
     try:
-        rig.wait_state("d1", lambda s: s.ofb, 5.0, "streaming")
-        rig.ok("d1", "mode", mode="OFFBOARD")  # accepted: the stream is live
-        rig.ok("d1", "arm")
+        wait_for(
+            lambda: rig.gateways["d1"].forwarder.held >= 3, 5.0, what="the stream held back until its engage"
+        )
+        rig.ok("d1", "mode", mode="OFFBOARD", stream="prog-1")  # accepted: the stream is live
         rig.wait_state(
             "d1", lambda s: s.p is not None and abs(s.p[2] + 1.0) < 0.1, 10.0, "offboard climb to 1 m"
         )
         assert ap.mode_name == "OFFBOARD"
+        assert rig.state("d1").auth == "stream prog-1 (test)"  # type: ignore[union-attr]
     finally:
         user.stop()  # the user program dies mid-air
     rig.wait_event("d1", lambda e: e.kind == "safety" and "lease expired" in e.text, 3.0, "lease expiry")
@@ -62,14 +68,24 @@ def test_user_setpoints_lease_expiry_lands_and_offboard_never_reengages(make_rig
         "d1", lambda e: e.kind == "failsafe" and "no offboard signal" in e.text, 5.0, "PX4 failsafe"
     )
     rig.wait_state("d1", lambda s: s.mode == "AUTO.LAND", 5.0, "landing by itself")
-    # The user program comes back while the vehicle lands: nothing reaches it, offboard stays off.
-    user = SetpointStream(rig.bus, "d1", p=(n, e, -1.5), lease=0.5)
+    # The user program comes back while the vehicle lands: its stream has ended (dropped, counted), a new
+    # stream is refused (landing), and offboard stays off.
+    late = SetpointStream(rig.bus, "d1", stream="prog-1", p=(n, e, -1.5), lease=0.5)
+    late.seq = user.seq
+    fresh = SetpointStream(rig.bus, "d1", stream="prog-2", p=(n, e, -1.5), lease=0.5)
     try:
-        rig.wait_event("d1", lambda e: e.kind == "safety" and "held back" in e.text, 3.0, "held back")
+        rig.wait_event("d1", lambda e: e.kind == "authority" and "prog-1 ended" in e.text, 3.0, "dropped")
+        rig.wait_event(
+            "d1", lambda e: e.kind == "safety" and "landing: take off first" in e.text, 3.0, "refused"
+        )
+        res = rig.cmd("d1", "mode", mode="OFFBOARD", stream="prog-2")
+        assert res.result == "REFUSED" and "landing: take off first" in res.reason
         rig.wait_state("d1", lambda s: s.landed == "on_ground" and not s.armed, 15.0, "landed and disarmed")
         assert not rig.state("d1").ofb  # type: ignore[union-attr]
     finally:
-        user.stop()
+        late.stop()
+        fresh.stop()
+    assert rig.gateways["d1"].forwarder.dropped >= 1
     # Between the failsafe landing and the disarm, the vehicle never went back to OFFBOARD (after the
     # disarm PX4 reports the user's mode again, harmlessly).
     seq = [e.data.get("mode", e.text) for e in rig.event_list("d1") if e.kind in ("mode", "armed")]
@@ -85,16 +101,26 @@ def test_refused_setpoints_never_reach_the_vehicle(make_rig: Callable[..., Rig])
     wait_for(lambda: rig.cmd("d1", "ping", timeout=1.0).ok, 10.0, what="gateway answers")
     res = rig.cmd("d1", "land")
     assert res.result == "REFUSED" and "no link to the autopilot (nothing heard yet)" in res.reason
-    vehicle = MavPeer(f"udpout:127.0.0.1:{port}", 1)  # records every byte the gateway sends
+    vehicle = MavPeer(f"udpout:127.0.0.1:{port}", 1, airborne=True)  # records every byte the gateway sends
     try:
         rig.wait_ready("d1")
+        wait_for(lambda: rig.gateways["d1"].state.flight_problem() is None, 5.0, what="armed, in the air")
+        # Engaged as a mode OFFBOARD command naming it would (the peer answers no command).
+        assert rig.gateways["d1"].forwarder.engage("s1", "test") is None
         pub = rig.bus.stream_publisher(keys.setpoint("d1"), wire.Setpoint)
         now = wire.now_ns
         bad = (
-            (wire.Setpoint(t=now(), p=(10.0, 0.0, -1.0)), "north 10.00 m outside"),
-            (wire.Setpoint(t=now(), p=(0.0, 0.0, -2.4)), "down -2.40 m outside"),
-            (wire.Setpoint(t=now(), v=(3.0, 0.0, 0.0)), "horizontal speed 3.00 m/s above max_speed"),
-            (wire.Setpoint(t=now(), v=(0.0, 0.0, -1.5)), "vertical speed 1.50 m/s above max_climb"),
+            (wire.Setpoint(t=now(), p=(10.0, 0.0, -1.0), stream="s1", seq=1), "north 10.00 m outside"),
+            (wire.Setpoint(t=now(), p=(0.0, 0.0, -2.4), stream="s1", seq=2), "down -2.40 m outside"),
+            (
+                wire.Setpoint(t=now(), v=(3.0, 0.0, 0.0), stream="s1", seq=3),
+                "horizontal speed 3.00 m/s above max_speed",
+            ),
+            (
+                wire.Setpoint(t=now(), v=(0.0, 0.0, -1.5), stream="s1", seq=4),
+                "vertical speed 1.50 m/s above max_climb",
+            ),
+            (wire.Setpoint(t=now(), p=(1.0, 0.5, -1.0)), "no stream identity"),
         )
         for sp, reason in bad:
             pub.put(sp)
@@ -104,7 +130,7 @@ def test_refused_setpoints_never_reach_the_vehicle(make_rig: Callable[..., Rig])
         time.sleep(0.5)
         assert vehicle.of("SET_POSITION_TARGET_LOCAL_NED") == []
         # A valid one goes out at once, is repeated at 20 Hz for its lease, then never again.
-        pub.put(wire.Setpoint(t=now(), p=(1.0, 0.5, -1.0), lease=0.5))
+        pub.put(wire.Setpoint(t=now(), p=(1.0, 0.5, -1.0), lease=0.5, stream="s1", seq=5))
         time.sleep(1.2)
         sent = vehicle.of("SET_POSITION_TARGET_LOCAL_NED")
         assert 8 <= len(sent) <= 14, len(sent)
@@ -298,20 +324,24 @@ def test_an_offboard_block_after_a_hold_is_no_held_back_warning(tmp_path: Path) 
     events = EventSink(None, logging.getLogger("test"))
     link = _Link()
     fwd = SetpointForwarder(link, 1, cfg.arena, events)  # type: ignore[arg-type]
-    sp = wire.Setpoint(t=1, p=(0.0, 0.0, -1.0), yaw=0.0, lease=0.5)
+    seq = iter(range(1, 10_000))
+
+    def sp() -> wire.Setpoint:
+        return wire.Setpoint(t=1, p=(0.0, 0.0, -1.0), yaw=0.0, lease=0.5, stream="s1", seq=next(seq))
+
     fwd.latch("mode AUTO.LOITER")  # a Hold left offboard
     t = 100.0
     for _ in range(6):  # the block's 0.3 s of stream before its mode command (20 Hz)
-        assert fwd.offer(sp, t) is None
+        assert fwd.offer(sp(), t) is None
         t += 0.05
-    fwd.unlatch()  # the block's mode OFFBOARD
-    fwd.offer(sp, t)
+    assert fwd.engage("s1", "test", t) is None  # the block's mode OFFBOARD
+    fwd.offer(sp(), t)
     assert [e.text for e in events.recent if "held back" in e.text] == []
     assert link.sent  # streaming once released
     # A stream nobody switches to OFFBOARD: warned about after the grace.
     fwd.latch("mode AUTO.LOITER")
     t += 5.0
     for _ in range(int(HELD_BACK_GRACE / 0.05) + 2):
-        fwd.offer(sp, t)
+        fwd.offer(sp(), t)
         t += 0.05
     assert [e.sev for e in events.recent if "held back" in e.text] == [4]

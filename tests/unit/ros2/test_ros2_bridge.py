@@ -211,12 +211,29 @@ def test_ros2_commands_fly_a_simulated_vehicle_and_unsafe_ones_are_refused(
         assert here is not None
         twist = ros2_probe.Twist(ros2_probe.Vector3(0.3, 0.0, 0.0), ros2_probe.Vector3(0.0, 0.0, 0.0))
         deadline = time.monotonic() + 20.0
+        burst = 0
         while (p := d1.position) is not None and p[0] < here[0] + 0.3:
             assert time.monotonic() < deadline, f"no progress north: {p}"
             send(twist_ep, twist)
-            time.sleep(0.05)
+            burst += 1
+            time.sleep(0.01 if burst < 100 else 0.05)  # a burst first: 100 Twists during the engage
         probe.wait_for("/rosout", lambda m: "velocity stream started" in m.msg)
         _wait(lambda: d1.mode == "AUTO.LOITER", 10.0, "Hold after the Twists stopped")
+        # A short burst, then silence (issue 32): the engage outlasts the burst, yet the stream is engaged
+        # once, ended once, and no Twist that arrived during the engage starts another.
+        held_at = wire.now_ns()
+        slow = ros2_probe.Twist(ros2_probe.Vector3(0.1, 0.0, 0.0), ros2_probe.Vector3(0.0, 0.0, 0.0))
+        for _ in range(20):
+            send(twist_ep, slow)
+            time.sleep(0.02)
+        _wait(lambda: d1.mode == "OFFBOARD", 10.0, "the burst engaged")
+        _wait(lambda: d1.mode == "AUTO.LOITER", 10.0, "Hold after the burst")
+        time.sleep(3.0)  # the seconds after: the Hold stays
+        modes = [e.data.get("mode") for e in d1.events() if e.t >= held_at and e.kind == "mode"]
+        assert modes == ["OFFBOARD", "AUTO.LOITER"] and d1.mode == "AUTO.LOITER", modes
+        assert not [e for e in d1.events() if e.t >= held_at and e.kind == "failsafe"]
+        started = [m for m, _ in probe.samples.get("/rosout", []) if "velocity stream started" in m.msg]
+        assert len(started) == 2, [m.msg for m in started]  # the first flight's, and the burst's
         # An unsafe Twist: 5 m/s is beyond max_speed.
         send(twist_ep, ros2_probe.Twist(ros2_probe.Vector3(5.0, 0.0, 0.0), ros2_probe.Vector3(0.0, 0.0, 0.0)))
         refusal = probe.wait_for("/rosout", lambda m: "cmd_vel refused" in m.msg and "max_speed" in m.msg)

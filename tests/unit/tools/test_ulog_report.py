@@ -14,6 +14,7 @@ from tools.ulog_report import (
     main,
     render,
     spread,
+    timesync_error,
     timesync_start,
 )
 
@@ -113,3 +114,48 @@ def test_no_hover_found_and_a_bad_file_are_errors(
         analyse(flight)
     assert main(["/nonexistent/flight.ulg"]) == 1
     assert "ulog_report:" in capsys.readouterr().err
+
+
+def _px4_timesync_drifts(flight: dict[str, dict[str, np.ndarray]]) -> None:
+    """PX4's TIMESYNC estimate leaves the answers from 30 s on (converged there): its stamps drift to 40 ms
+    early at 60 s, as after a change of SITL's clock rate; ``timesync_status`` logged at 1 Hz, two answers
+    of a round trip over 10 ms (not taken by PX4) far off."""
+    vo = flight["vehicle_visual_odometry"]
+    true_stamp = vo["timestamp_sample"].astype(float)
+    error_us = np.where(true_stamp > 30e6, -40_000.0 * (true_stamp - 30e6) / 30e6, 0.0)
+    vo["timestamp_sample"] = np.where(true_stamp > 30e6, true_stamp + error_us, true_stamp).astype(np.int64)
+    vo["timestamp"] = np.where(true_stamp > 30e6, true_stamp + 10_000, true_stamp).astype(np.int64)
+    t = np.arange(0.0, 60.0, 1.0)
+    observed = 5e6 - 8_000.0 * t + np.tile([-1500.0, 0.0, 1500.0], 20)  # SITL 0.8 % slow, jitter
+    error = np.where(t > 30.0, -40_000.0 * (t - 30.0) / 30.0, 0.0)
+    rtt = np.zeros(len(t))
+    rtt[[40, 50]] = 20_000.0
+    observed[[40, 50]] += 300_000.0
+    flight["timesync_status"] = {
+        "timestamp": (t * 1e6).astype(np.int64),
+        "remote_timestamp": (t * 1e6 + 1e9).astype(np.int64),
+        "observed_offset": observed.astype(np.int64),
+        "estimated_offset": (observed + error).astype(np.int64),
+        "round_trip_time": rtt.astype(np.int64),
+    }
+
+
+def test_vision_lag_with_pxs_timesync_error_taken_out() -> None:
+    flight = _flight(lag_s=0.2, vision_lag_s=0.01)
+    _px4_timesync_drifts(flight)
+    report = analyse(flight)
+    # As PX4 stamped it: the vision looks earlier than it is, PX4's mapping error mixed in.
+    assert report.vision_vs_truth is not None and report.vision_vs_truth.ms <= 5
+    # With PX4's own error (its estimate minus its answers) taken out: the vision's true 10 ms.
+    assert report.vision_vs_truth_synced is not None and report.vision_vs_truth_synced.ms == pytest.approx(
+        10, abs=1
+    )
+    assert report.timesync_error_ms is not None
+    p50, largest = report.timesync_error_ms
+    assert -30 < p50 < -10 and 35 < largest <= 40
+    assert "TIMESYNC error taken out: 10 ms behind" in render(report)
+    found = timesync_error(flight["timesync_status"])
+    assert found is not None and len(found[0]) == 58  # the two slow answers left out
+    # Without timesync_status (an older log), no synced figure.
+    del flight["timesync_status"]
+    assert analyse(flight).vision_vs_truth_synced is None
