@@ -28,10 +28,15 @@ def main(arena: Arena, names: list[str], radius: float = 1.0, height: float = 1.
     swarm.run(lambda v: v.wait_until(lambda x: x.position is not None, timeout=10, what="first position"))
     swarm.arm()
     swarm.takeoff(height)
+    # Who takes which slot: the assignment whose ways keep min_separation from the other vehicles (the
+    # gateways refuse a goto that would not); the formation then turns with each vehicle in its slot.
+    first = slots((0.0, 0.0), radius, 0.0, len(names))
+    place = swarm.assign(first)
+    index = {name: first.index(place[name]) for name in place}  # type: ignore[arg-type]
     for step in range(turns + 1):
         targets = slots((0.0, 0.0), radius, step * (2 * math.pi / 3) / turns, len(names))
-        # One argument per vehicle, in the swarm's order: every vehicle flies to its own slot at once.
-        swarm.run(lambda v, t: v.goto(t[0], t[1], -height, yaw=0.0), targets)
+        # One argument per vehicle, by name: every vehicle flies to its own slot at once.
+        swarm.run(lambda v, t: v.goto(t[0], t[1], -height, yaw=0.0), {n: targets[index[n]] for n in names})
         print(f"formation step {step}: " + ", ".join(f"{v.name} {v.position}" for v in swarm))
     swarm.land()
 

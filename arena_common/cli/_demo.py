@@ -15,7 +15,6 @@ process alive once it is done: each vehicle's action runs in a daemon thread, le
 from __future__ import annotations
 
 import contextlib
-import itertools
 import json
 import math
 import os
@@ -38,6 +37,7 @@ from rich.text import Text
 from arena_common.cli._flight import Snapshot
 from arena_common.cli._globals import config_file as global_config_file
 from arena_common.client import Arena, Vehicle
+from arena_common.client.swarm import WANDER_MARGIN, clear_assignment
 from arena_common.client.types import FlightMode, LandedState
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ArenaError
@@ -172,47 +172,22 @@ def formation_flight(
 
 def circle_slots(vehicles: Sequence[Vehicle], radius: float) -> tuple[list[str], float]:
     """The order of the vehicles around the formation's circle and its starting angle such that each
-    vehicle's straight way from where it is to its place keeps ``arena.min_separation`` (and 0.2 m of
-    wander) from every other vehicle, where it is and where it goes — the gateways refuse a goto that
-    would not; of those, the shortest ways.  The given order at angle 0 when none is clear."""
+    vehicle's way to its place is clear of the others (:func:`~arena_common.client.swarm.clear_assignment`:
+    the gateways refuse a goto that is not); the given order at angle 0 when no angle gives one."""
     cfg = vehicles[0].arena.config if vehicles else None
-    keep = (cfg.arena.min_separation if cfg is not None else 0.0) + 0.2
-    here = {v.name: (v.position or (0.0, 0.0, 0.0))[:2] for v in vehicles}
-    names = list(here)
-    n = len(names)
-    best: tuple[float, list[str], float] | None = None
-    orders = itertools.permutations(names) if n <= 6 else iter([tuple(names)])
-    for order in orders:
-        for k in range(24):
-            offset = k * math.pi / 12
-            slot = {
-                name: (
-                    radius * math.cos(offset + 2 * math.pi * i / n),
-                    radius * math.sin(offset + 2 * math.pi * i / n),
-                )
-                for i, name in enumerate(order)
-            }
-            if all(
-                _clear(here[a], slot[a], q, keep)
-                for a in names
-                for b in names
-                if b != a
-                for q in (here[b], slot[b])
-            ):
-                length = sum(math.dist(here[a], slot[a]) for a in names)
-                if best is None or length < best[0]:
-                    best = (length, list(order), offset)
-    return (best[1], best[2]) if best is not None else (names, 0.0)
-
-
-def _clear(a: tuple[float, ...], b: tuple[float, ...], q: tuple[float, ...], keep: float) -> bool:
-    """The segment ``a``–``b`` keeps ``keep`` from ``q`` (or starts within it: flying away is fine)."""
-    if math.dist(a, q) < keep:
-        return True
-    ab, aq = (b[0] - a[0], b[1] - a[1]), (q[0] - a[0], q[1] - a[1])
-    n2 = ab[0] ** 2 + ab[1] ** 2
-    k = 0.0 if n2 == 0.0 else max(0.0, min(1.0, (ab[0] * aq[0] + ab[1] * aq[1]) / n2))
-    return math.dist(q, (a[0] + k * ab[0], a[1] + k * ab[1])) >= keep
+    keep = (cfg.arena.min_separation if cfg is not None else 0.0) + WANDER_MARGIN
+    here = {v.name: (v.position or (0.0, 0.0, 0.0)) for v in vehicles}
+    n = len(here)
+    for k in range(24):
+        offset = k * math.pi / 12
+        slots = [
+            (radius * math.cos(offset + 2 * math.pi * i / n), radius * math.sin(offset + 2 * math.pi * i / n))
+            for i in range(n)
+        ]
+        got = clear_assignment(here, slots, keep)
+        if got is not None:
+            return sorted(got, key=lambda name: slots.index(got[name])), offset  # type: ignore[arg-type]
+    return list(here), 0.0
 
 
 # -- a fleet: N simulated vehicles on a grid (--vehicles) ------------------------------------------------------

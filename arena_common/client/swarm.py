@@ -8,11 +8,14 @@
     swarm.takeoff(1.0)
     swarm.run(lambda v, p: v.goto(*p), [(1, 0, -1), (0, 1, -1), (-1, 0, -1)])   # one argument each
     swarm.run(lambda v, p: v.goto(*p), {"d1": (1, 0, -1), "d2": (0, 1, -1), "d3": (-1, 0, -1)})
+    swarm.goto(swarm.assign([(1, 0, -1), (0, 1, -1), (-1, 0, -1)]))   # who goes where: clear ways
     swarm.land()
 """
 
 from __future__ import annotations
 
+import itertools
+import math
 import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
@@ -22,7 +25,60 @@ from arena_common.core.errors import CommandError
 if TYPE_CHECKING:
     from arena_common.client.vehicle import Vehicle
 
-__all__ = ["Swarm"]
+__all__ = ["WANDER_MARGIN", "Swarm", "clear_assignment"]
+
+WANDER_MARGIN = 0.2  # m kept beyond min_separation when planning ways: the hover's wander on the way
+MAX_PERMUTED = 7  # vehicles up to which every assignment is tried (7! = 5040); beyond, nearest first
+Point = Sequence[float]
+
+
+def clear_assignment(
+    here: Mapping[str, Point], targets: Sequence[Point], keep: float
+) -> dict[str, Point] | None:
+    """Which vehicle flies to which target (north, east[, down]; compared on north and east) such that
+    each one's straight way from ``here`` keeps ``keep`` from every other vehicle, where it is and where
+    it goes; of those, the shortest ways in all.  None when no assignment is clear.
+
+    The gateways refuse a goto whose goal or path comes within ``arena.min_separation`` of another
+    vehicle: an assignment found here with ``keep`` = ``min_separation`` + :data:`WANDER_MARGIN` is not.
+    """
+    names = list(here)
+    if len(targets) != len(names):
+        raise ValueError(f"{len(targets)} targets for {len(names)} vehicles")
+    best: tuple[float, dict[str, Point]] | None = None
+    orders: Iterable[tuple[int, ...]]
+    if len(names) <= MAX_PERMUTED:
+        orders = itertools.permutations(range(len(names)))
+    else:  # greedy: each vehicle, in turn, the nearest free target
+        free, nearest = list(range(len(targets))), []
+        for n in names:
+            k = min(free, key=lambda i: math.dist(here[n][:2], targets[i][:2]))
+            free.remove(k)
+            nearest.append(k)
+        orders = [tuple(nearest)]
+    for order in orders:
+        goal = {n: targets[k] for n, k in zip(names, order, strict=True)}
+        if all(
+            _keeps(here[a][:2], goal[a][:2], q[:2], keep)
+            for a in names
+            for b in names
+            if b != a
+            for q in (here[b], goal[b])
+        ):
+            length = sum(math.dist(here[n][:2], goal[n][:2]) for n in names)
+            if best is None or length < best[0]:
+                best = (length, goal)
+    return None if best is None else best[1]
+
+
+def _keeps(a: Point, b: Point, q: Point, keep: float) -> bool:
+    """The segment ``a``–``b`` keeps ``keep`` from ``q`` (or starts within it: flying away is allowed)."""
+    if math.dist(a, q) < keep:
+        return True
+    ab, aq = (b[0] - a[0], b[1] - a[1]), (q[0] - a[0], q[1] - a[1])
+    n2 = ab[0] ** 2 + ab[1] ** 2
+    k = 0.0 if n2 == 0.0 else max(0.0, min(1.0, (ab[0] * aq[0] + ab[1] * aq[1]) / n2))
+    return math.dist(q, (a[0] + k * ab[0], a[1] + k * ab[1])) >= keep
 
 
 class Swarm:
@@ -91,6 +147,26 @@ class Swarm:
     def broadcast(self, op: str, timeout: float = 5.0, **args: Any) -> list[Any]:
         """Send the same raw gateway command to every vehicle at once (see :meth:`Vehicle.command`)."""
         return self.run(lambda v: v.command(op, timeout, **args))
+
+    def assign(self, targets: Sequence[Point]) -> dict[str, Point]:
+        """Which vehicle goes to which of ``targets`` (one each), by name, so that no vehicle's straight
+        way passes within ``arena.min_separation`` (+ :data:`WANDER_MARGIN`) of another, where it is or
+        where it goes — what the gateways would refuse; of those, the shortest.  :class:`ValueError` when
+        no assignment is clear (fly them in two steps, or choose other targets)."""
+        cfg = self.vehicles[0].arena.config if self.vehicles else None
+        keep = (cfg.arena.min_separation if cfg is not None else 0.0) + WANDER_MARGIN
+        here: dict[str, Point] = {}
+        for v in self.vehicles:
+            p = v.position
+            if p is None:
+                raise ValueError(f"{v.name}: no position known: cannot plan its way")
+            here[v.name] = p
+        got = clear_assignment(here, targets, keep)
+        if got is None:
+            raise ValueError(
+                f"no assignment of {len(targets)} targets keeps the ways {keep:.2f} m from the other vehicles"
+            )
+        return got
 
     def arm(self) -> None:
         """Arm every vehicle."""

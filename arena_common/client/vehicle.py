@@ -366,16 +366,36 @@ class Vehicle:
                     )
                 self._cond.wait(min(left, 0.1))
 
-    def wait_arrival(self, arrival: Arrival, timeout: float, what: str) -> None:
+    def wait_arrival(self, arrival: Arrival, timeout: float, what: str, holding: str = "") -> None:
         """Block until ``arrival`` judges the vehicle arrived (its position averaged over the arrival
         window, :mod:`arena_common.core.arrival`); :class:`CommandTimeout` after ``timeout`` seconds,
-        naming how far the vehicle is."""
+        naming how far the vehicle is.  With ``holding`` (a mode, ``"OFFBOARD"`` for a goto), leaving that
+        mode ends the wait at once with :class:`CommandRejected` and the last events: nothing flies the
+        vehicle there any more (a separation hold, a failsafe, another program)."""
+        left_mode: list[str] = []
+        seen = [False]  # the vehicle was seen in ``holding`` (a state may lag the command's answer)
+        started = time.monotonic()
 
         def arrived(v: Vehicle) -> bool:
-            arrival.add(time.monotonic(), v.position)
+            now = time.monotonic()
+            arrival.add(now, v.position)
+            if holding:
+                if v.mode == holding:
+                    seen[0] = True
+                elif seen[0] or now - started > 3.0:
+                    left_mode.append(str(v.mode))
+                    return True
             return arrival.arrived()
 
         self.wait_until(arrived, timeout, what, arrival.describe)
+        if left_mode:
+            recent = "; ".join(e.text for e in self.events()[-3:])
+            raise CommandRejected(
+                f"{self.name}: {what} not reached: the vehicle left {holding} ({left_mode[0]}), "
+                f"{arrival.describe()} (last events: {recent})",
+                result="REJECTED",
+                drone=self.name,
+            )
 
     def _catch_up(self, t_ns: int, timeout: float = 1.0) -> None:
         """Wait (briefly) for a state the gateway stamped at or after ``t_ns`` (its clock): the attributes
@@ -517,7 +537,7 @@ class Vehicle:
             self.command("goto", min(timeout, 10.0), **args)
         clock = self.arena.clock
         judge = Arrival(target, tolerance, clock.wall(ARRIVAL_WINDOW))
-        self.wait_arrival(judge, clock.wall(timeout), f"position {target}")
+        self.wait_arrival(judge, clock.wall(timeout), f"position {target}", holding="OFFBOARD")
 
     def follow(self, trajectory: Trajectory, rate: float = 30.0) -> None:
         """Fly ``trajectory`` (from its start, which should be near the vehicle) in an offboard block and

@@ -663,7 +663,8 @@ class Gateway:
         fleet = typed(item, wire.Fleet, lambda kind, detail: self.stats.reject(f"fleet: {kind}"))
         if fleet is not None:
             self.separation.update(fleet)
-            closing = self.separation.closing()
+            commanded, travel_left = self.forwarder.course()
+            closing = self.separation.closing(commanded=commanded, travel_left=travel_left)
             if closing is not None:
                 self.forwarder.guard(closing, self.state.mode == "OFFBOARD")
 

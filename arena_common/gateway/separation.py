@@ -9,12 +9,14 @@ so the cost per vehicle stays fixed whatever the fleet's size.  With it:
 - a setpoint whose position lies within it of another vehicle is refused the same way
   (:meth:`Separation.point_problem`);
 - two vehicles closing in anyway (a velocity stream, the wander) are caught before they meet
-  (:meth:`Separation.closing`): when this vehicle moves toward another and the gap between them shrinks
-  fast enough that the braking path at that closing speed (PX4's Hold brakes over
-  ``v·(v/(2·MPC_ACC_HOR) + delay)``, :data:`BRAKE_DELAY` as measured, plus the fleet message's age) would
-  bring them within ``min_separation``, the gateway takes the vehicle and commands Hold, with an event
-  naming the other.  Each gateway judges its own vehicle's motion toward the other: a vehicle hovering
-  still is never the one held, and two flying side by side (no closing speed) are left alone.
+  (:meth:`Separation.closing`): when this vehicle moves toward another and, on their present courses,
+  the two would come within ``min_separation`` before a Hold could stop them (the time PX4's Hold takes
+  to brake, ``v/(2·MPC_ACC_HOR) + delay`` at their relative speed, :data:`BRAKE_DELAY` as measured, plus
+  the fleet message's age), the gateway takes the vehicle and commands Hold, with an event naming the
+  other.  Two vehicles passing each other wide, or turning in formation, are not closing in.  Each
+  gateway judges its own vehicle's motion toward the other: a vehicle hovering
+  (its wander, below :data:`WANDER_SPEED`) is held only once inside ``min_separation``, and two flying
+  side by side (no closing speed) are left alone.
 
 A fleet older than :data:`FLEET_MAX_AGE` says nothing (no position of the others is then trusted, and
 nothing is refused for it: a vehicle whose mocap stopped is landing by itself).
@@ -34,7 +36,11 @@ Vec3 = tuple[float, float, float]
 FLEET_MAX_AGE = 1.0  # s since the last fleet message arrived: older, the others' positions are unknown
 BRAKE_ACCEL = 3.0  # m/s²: PX4's MPC_ACC_HOR default, the deceleration of its Hold
 BRAKE_DELAY = 1.2  # s: PX4 Hold brakes as late as 1.0 s in effect (38-47 cm from 0.45 m/s), + 0.2 s of load
-MIN_CLOSING = 0.05  # m/s toward the other: slower is hovering (the wander), never held for
+MIN_CLOSING = 0.05  # m/s toward the other: slower is hovering still, never held for
+#: m/s of own speed toward the other below which only entering min_separation is held for: PX4's hover
+#: wanders at 0.1-0.2 m/s (docs/px4.md), and holding a wandering vehicle in Hold changes nothing (Hold
+#: wanders alike); spacing keeps wandering vehicles apart (arena demo: min_separation + two swings).
+WANDER_SPEED = 0.25
 FLEET_PERIOD = 0.1  # s between fleet messages: how old the others' positions may be
 
 
@@ -49,8 +55,8 @@ class Closing:
 
     def describe(self, min_separation: float) -> str:
         return (
-            f"{self.other} {self.distance:.2f} m away, closing at {self.speed:.2f} m/s (would stop "
-            f"{self.stop_at:.2f} m from it; min_separation {min_separation:.2f} m)"
+            f"{self.other} {self.distance:.2f} m away, closing at {self.speed:.2f} m/s (would come "
+            f"{self.stop_at:.2f} m near before a Hold stops them; min_separation {min_separation:.2f} m)"
         )
 
 
@@ -108,10 +114,16 @@ class Separation:
                 return f"its path passes {d:.2f} m from {other} (min_separation {self.min_separation:.2f} m)"
         return None
 
-    def closing(self, now: float | None = None) -> Closing | None:
+    def closing(
+        self, now: float | None = None, commanded: Vec3 | None = None, travel_left: float | None = None
+    ) -> Closing | None:
         """The nearest other vehicle this one (as the same fleet message has it) would come within
-        ``min_separation`` of before a Hold could stop it, or None.  Cheap when this vehicle hovers (the
-        common case at any fleet size): nothing is judged below ``MIN_CLOSING``."""
+        ``min_separation`` of before a Hold could stop it, or None.
+
+        ``commanded``: the velocity a stream commands this vehicle, used when faster than the measured
+        one (a vehicle still accelerating toward it); ``travel_left``: how far the gateway's goto still
+        flies it (it stops at its goal: no further course is predicted).  Cheap when this vehicle hovers
+        (the common case at any fleet size): nothing is judged below ``MIN_CLOSING``."""
         fleet = self._current(now)
         if self.min_separation <= 0.0 or fleet is None:
             return None
@@ -119,8 +131,12 @@ class Separation:
         if own is None:
             return None
         p, v = own.p, own.v
-        if v[0] * v[0] + v[1] * v[1] + v[2] * v[2] < MIN_CLOSING * MIN_CLOSING:
+        speed2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+        if commanded is not None and sum(c * c for c in commanded) > speed2:
+            v, speed2 = commanded, sum(c * c for c in commanded)
+        if speed2 < MIN_CLOSING * MIN_CLOSING:
             return None
+        cap = math.inf if travel_left is None else travel_left / math.sqrt(speed2)
         worst: Closing | None = None
         for e in fleet.b:
             if e is own:
@@ -130,21 +146,25 @@ class Separation:
             if d == 0.0:
                 continue
             toward = ((q[0] - p[0]) * v[0] + (q[1] - p[1]) * v[1] + (q[2] - p[2]) * v[2]) / d
-            if toward < MIN_CLOSING:
+            if toward < MIN_CLOSING or (toward < WANDER_SPEED and d >= self.min_separation):
                 continue
-            coming = ((p[0] - q[0]) * w[0] + (p[1] - q[1]) * w[1] + (p[2] - q[2]) * w[2]) / d
-            closing = toward + coming  # how fast the gap shrinks: 0 for two flying side by side
-            if closing <= 0.0:
-                continue
-            stop_at = d - _braking(closing)  # both held: the gap shrinks by at most this much
+            r = (q[0] - p[0], q[1] - p[1], q[2] - p[2])  # the other, seen from here
+            u = (w[0] - v[0], w[1] - v[1], w[2] - v[2])  # its velocity relative to ours
+            ru, uu = r[0] * u[0] + r[1] * u[1] + r[2] * u[2], u[0] * u[0] + u[1] * u[1] + u[2] * u[2]
+            if ru >= 0.0:
+                continue  # the gap does not shrink: side by side, or parting
+            # The closest the two come on their present courses within the time a Hold takes to stop.
+            t = min(-ru / uu, _stopping_time(math.sqrt(uu)), cap)
+            stop_at = math.dist(r, (-u[0] * t, -u[1] * t, -u[2] * t))
             if stop_at < self.min_separation and (worst is None or stop_at < worst.stop_at):
-                worst = Closing(e.n, d, closing, stop_at)
+                worst = Closing(e.n, d, -ru / d, stop_at)
         return worst
 
 
-def _braking(speed: float) -> float:
-    """How far a vehicle at ``speed`` goes before PX4's Hold has stopped it (and the fleet is this old)."""
-    return speed * (speed / (2.0 * BRAKE_ACCEL) + BRAKE_DELAY + FLEET_PERIOD)
+def _stopping_time(speed: float) -> float:
+    """How long, flown at ``speed``, covers what a vehicle goes before PX4's Hold has stopped it (and the
+    fleet message is this old): ``speed · t`` is the braking path ``v·(v/(2·a) + delay)``."""
+    return speed / (2.0 * BRAKE_ACCEL) + BRAKE_DELAY + FLEET_PERIOD
 
 
 def _segment_distance(a: Vec3, b: Vec3, q: Vec3) -> float:

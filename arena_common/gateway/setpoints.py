@@ -560,6 +560,16 @@ class SetpointForwarder:
             self.sent += 1
             self.stats.count("setpoints")
 
+    def course(self) -> tuple[Vec3 | None, float | None]:
+        """What the arena flies the vehicle to now: the velocity a user stream commands (None for a
+        position stream) and how far the gateway's goto still has to go (None when no goto flies it)."""
+        s, pos = self._stream, self.position()
+        if s is None or self._latched is not None:
+            return None, None
+        if s.source == "goto" and s.goal is not None:
+            return None, math.dist(pos, s.goal) if pos is not None else None
+        return (s.v if s.p is None else None), None
+
     def guard(self, closing: Closing, offboard: bool) -> None:
         """The vehicle heads for another (``closing``): when the arena flies it (OFFBOARD), take it from
         whoever holds it and command Hold at once; in the autopilot's own modes, warn."""
