@@ -9,7 +9,7 @@
         d1 = arena.vehicle("d1")
         d1.arm()
         d1.takeoff(1.0)
-        d1.goto(1.0, 0.5, -1.0, yaw=0.0)
+        d1.goto(1.0, -1.0, -1.0, yaw=0.0)
         for pose in d1.poses(timeout=1.0):   # every new mocap pose, in order, with its measurement time
             ...
         d1.land()

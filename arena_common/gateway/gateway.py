@@ -64,6 +64,7 @@ from typing import Any
 from arena_common.bus.session import Bus, Handler, Lane, Received, Subscription, typed
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
+from arena_common.gateway.clockwatch import ClockWatch
 from arena_common.gateway.commands import CommandExecutor
 from arena_common.gateway.events import EventSink
 from arena_common.gateway.options import GatewayOptions, stream_ids
@@ -79,7 +80,7 @@ from arena_common.mavlink.link import MSG, Frame, GcsForwarder, MavlinkLink, Mav
 from arena_common.mavlink.metadata import HANDLED_MESSAGES, MetadataClient, MetadataError, reboot_required
 from arena_common.mavlink.protocols import MavCommander, ParamClient, SetupChecker
 from arena_common.mavlink.signing import GATEWAY_UNSIGNED, LinkSigning, vehicle_key
-from arena_common.runtime.clock import ClockStatus, ClockSync
+from arena_common.runtime.clock import ClockSync
 from arena_common.runtime.service import Stats
 
 __all__ = ["Gateway", "GatewayOptions"]
@@ -108,8 +109,6 @@ class Gateway:
     ) -> None:
         self.cfg = cfg
         self.clock = clock
-        self._clock_said: tuple[str, bool] | None = None
-        self._clock_grace = time.monotonic() + 2.0 + 3 * cfg.clock.period
         self.spec = v = cfg.vehicle(vehicle)
         self.name = v.name
         self.bus = bus
@@ -134,6 +133,7 @@ class Gateway:
         self._rejects_report = 0.0
         self._event_pub = bus.command_publisher(keys.events(v.name), wire.Event) if bus is not None else None
         self.events = EventSink(self._event_pub.put if self._event_pub is not None else None, self.log)
+        self.clock_watch = ClockWatch(clock, cfg.clock, self.events)
         self.state = VehicleState(v.system_id, self.events, o.link_timeout)
         self.origin = (
             GlobalOrigin(self.link, v.system_id, o.origin, self.events) if o.origin is not None else None
@@ -329,7 +329,7 @@ class Gateway:
 
     def _every_second(self, now: float) -> None:
         self._count_link_rejects()
-        self._check_clock()
+        self.clock_watch.check()
         self.link.send(
             self.link.mav.heartbeat_encode(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, px4.MAV_STATE_ACTIVE)
         )
@@ -339,56 +339,7 @@ class Gateway:
 
     def clock_problem(self) -> str | None:
         """Why pose times cannot be trusted on this host (arming is refused), or None."""
-        if self.clock is None:
-            return None
-        st = self.clock.status()
-        if st.state == "no_reference" and not self.cfg.clock.require:
-            return None
-        return st.problem
-
-    def _clock_flags(self, st: ClockStatus) -> list[str]:
-        if st.state == "no_reference":
-            return ["clock_unknown"] if self.cfg.clock.require else ["clock_unchecked"]
-        flags = {"unknown": ["clock_unknown"], "uncertain": ["clock_uncertain"]}.get(st.state, [])
-        return flags + (["clock_offset"] if st.warning else [])
-
-    def _check_clock(self) -> None:
-        """Emit a ``clock`` event whenever the clock's state or its offset warning changes."""
-        if self.clock is None:
-            return
-        st = self.clock.status()
-        if st.state in ("unknown", "no_reference") and time.monotonic() < self._clock_grace:
-            return  # the first exchanges are under way (and the bus may not know its routes yet)
-        problem = self.clock_problem()
-        said = (st.state, st.warning is not None)  # the figures change with every exchange
-        if said == self._clock_said:
-            return
-        first = self._clock_said is None
-        self._clock_said = said
-        est = st.estimate
-        data: dict[str, Any] = {"state": st.state, "ref": st.ref, "host": self.clock.host}
-        if est is not None:
-            data.update(offset=est.offset, unc=est.unc)
-        if problem is not None:
-            self.events.emit("clock", f"{problem.removeprefix('clock: ')}: arming refused", 3, **data)
-        elif st.warning is not None:
-            self.events.emit("clock", st.warning.removeprefix("clock: "), 4, **data)
-        elif st.state == "no_reference":
-            self.events.emit(
-                "clock",
-                f"no mocap time reference answers on arena/sys/time: pose times are taken as the "
-                f"clock of {self.clock.host} (clock.require is false)",
-                5,
-                **data,
-            )
-        elif not first and est is not None:
-            self.events.emit(
-                "clock",
-                f"{self.clock.host} is within {self.cfg.clock.max_offset * 1e3:.1f} ms of the mocap "
-                f"host's clock ({st.ref}): offset {est.offset * 1e3:+.2f} ± {est.unc * 1e3:.2f} ms",
-                6,
-                **data,
-            )
+        return self.clock_watch.problem()
 
     def _count_link_rejects(self) -> None:
         """Publish what the link dropped since the last call as rejects with a reason."""
@@ -565,8 +516,7 @@ class Gateway:
                 self.events.emit("estimator", "position valid again", 6)
         if self.forwarder.latched is not None and s.mode != "OFFBOARD":
             flags.append("offboard_latched")
-        if self.clock is not None:
-            flags += self._clock_flags(self.clock.status())
+        flags += self.clock_watch.flags()
         valid = p is not None and problem is None
         bat = s.bat
         msg = wire.State(

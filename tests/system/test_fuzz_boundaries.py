@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import os
 import random
@@ -654,19 +655,25 @@ def gw(tmp_path: Path, router_endpoint: str) -> Iterator[GatewayRig]:
         rig.close()
 
 
+_PROBES = itertools.count(1)
+
+
 def still_working(gw: GatewayRig, deaths: ThreadDeaths, n_deaths: int) -> None:
-    """The gateway sends vision, answers, and streams a valid setpoint: none of its threads died."""
+    """The gateway sends vision, answers, and judges setpoints: none of its threads died.
+
+    The setpoint thread is probed with a setpoint of a fresh stream just outside the safe volume (a
+    distinct distance each time, so no event is rate-limited away): it is refused, with its reason, and
+    nothing reaches the vehicle — whether the vehicle stands or flies (a stream that does not hold the
+    vehicle never flies, docs/safety.md §2.1)."""
     died = deaths.since(n_deaths)
     t0 = time.monotonic()
     time.sleep(0.5)
     assert gw.odometry_since(t0) >= 15, f"vision stopped; threads died: {died}"
+    k = next(_PROBES)
+    north = 10.0 + 0.01 * k
     sp = gw.bus.stream_publisher(keys.setpoint("d1"), wire.Setpoint)
-    sp.put(wire.Setpoint(t=wire.now_ns(), p=(0.0, 0.0, -1.0), lease=0.2))
-    wait_for(
-        lambda: gw.ap.tap.times("SET_POSITION_TARGET_LOCAL_NED", after=t0),
-        2.0,
-        what=f"a valid setpoint reaching the vehicle; threads died: {died}",
-    )
+    sp.put(wire.Setpoint(t=wire.now_ns(), p=(north, 0.0, -1.0), lease=0.2, stream=f"probe-{k}", seq=1))
+    gw.event(t0, f"setpoint refused: position outside the safe volume: north {north:.2f} m outside")
     assert not died, died
 
 
@@ -762,7 +769,7 @@ def test_unsafe_setpoints_and_commands_are_refused_with_a_reason(
     refusals: dict[str, tuple[dict[str, Any], str]] = {
         "takeoff": (dict(height=5.0), "takeoff height 5.00 m outside"),
         "goto": (dict(p=[0.0, 0.0, -5.0]), "goal outside the safe volume"),
-        "mode": (dict(mode="OFFBOARD"), "no live setpoint stream"),
+        "mode": (dict(mode="OFFBOARD"), "disarmed: take off first"),  # nothing flies from the floor
     }
     for op, (args, reason) in refusals.items():
         res = gw.cmd(op, **args)
