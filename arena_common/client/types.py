@@ -119,6 +119,7 @@ class Status(_Timed):
     failsafes: tuple[str, ...]
     heartbeat_age: float | None  # s, at the gateway
     rtt: float | None  # s, link round trip
+    holder: str = ""  # who holds the vehicle: a stream, the gateway's goto, "" (the autopilot's mode)
 
     @classmethod
     def from_wire(cls, s: wire.State, received: float) -> Status:
@@ -139,6 +140,7 @@ class Status(_Timed):
             failsafes=tuple(s.fs),
             heartbeat_age=s.hb_age,
             rtt=s.rtt,
+            holder=s.auth,
         )
 
 
