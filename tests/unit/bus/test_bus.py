@@ -182,7 +182,12 @@ def test_ctrl_c_stops_a_client_still_waiting_for_its_router(tmp_path: Path) -> N
         path.read_text().replace('mode = "peer"\n', 'mode = "peer"\nvehicle_mode = "client"\n', 1)
     )
     arena = str(Path(sys.executable).with_name("arena"))
-    proc = subprocess.Popen([arena, "run", "gateway", "--vehicle", "d1", "-c", str(path)], cwd=tmp_path)
+    proc = subprocess.Popen(
+        [arena, "run", "gateway", "--vehicle", "d1", "-c", str(path)],
+        cwd=tmp_path,
+        # Ctrl-C as a terminal delivers it: a test run started in the background inherits SIGINT ignored.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     try:
         time.sleep(2.0)  # it is waiting for the router now (or still importing: Ctrl-C stops that too)
         assert proc.poll() is None
