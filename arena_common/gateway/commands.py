@@ -36,6 +36,9 @@ NAN = math.nan
 _MANUAL_MAINS = frozenset(
     {px4.MAIN_MANUAL, px4.MAIN_ALTCTL, px4.MAIN_POSCTL, px4.MAIN_ACRO, px4.MAIN_STABILIZED}
 )
+#: s an arm waits for this host's clock (and the vision behind it) to settle: a program arming right after
+#: the arena came up meets the first exchanges with the mocap host's clock still under way.
+CLOCK_SETTLE_S = 3.0
 #: Results the autopilot gave (COMMAND_ACK, or acknowledged but not done) whose reason it may still be
 #: sending: the answer waits up to TEXT_GRACE_S for its STATUSTEXT.
 _SAID_BY_AUTOPILOT = frozenset({"DENIED", "TEMPORARILY_REJECTED", "FAILED", "UNSUPPORTED"})
@@ -198,8 +201,13 @@ class CommandExecutor:
         if self.origin is not None:
             # PX4 arms in Hold only with a global position: let the EKF origin exchange finish first.
             self.origin.wait_settled(deadline - 0.5)
-        # Before the vision: a clock that cannot be trusted is why no pose reached the autopilot.
+        # Before the vision: a clock that cannot be trusted is why no pose reached the autopilot.  Just
+        # after start-up its first exchanges may still be under way: give them a moment (bounded).
         clock = self.clock_problem() if self.clock_problem is not None else None
+        until = min(deadline - 0.5, time.monotonic() + CLOCK_SETTLE_S)
+        while clock is not None and self.clock_problem is not None and time.monotonic() < until:
+            time.sleep(0.1)
+            clock = self.clock_problem()
         if clock is not None:
             return clock
         age = self.vision.age(time.monotonic())
