@@ -21,6 +21,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from arena_common.core.errors import CommandError
+from arena_common.geometry.segments import segment_distance
 
 if TYPE_CHECKING:
     from arena_common.client.vehicle import Vehicle
@@ -73,12 +74,7 @@ def clear_assignment(
 
 def _keeps(a: Point, b: Point, q: Point, keep: float) -> bool:
     """The segment ``a``–``b`` keeps ``keep`` from ``q`` (or starts within it: flying away is allowed)."""
-    if math.dist(a, q) < keep:
-        return True
-    ab, aq = (b[0] - a[0], b[1] - a[1]), (q[0] - a[0], q[1] - a[1])
-    n2 = ab[0] ** 2 + ab[1] ** 2
-    k = 0.0 if n2 == 0.0 else max(0.0, min(1.0, (ab[0] * aq[0] + ab[1] * aq[1]) / n2))
-    return math.dist(q, (a[0] + k * ab[0], a[1] + k * ab[1])) >= keep
+    return math.dist(a, q) < keep or segment_distance(a, b, q) >= keep
 
 
 class Swarm:

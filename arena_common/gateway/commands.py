@@ -201,21 +201,23 @@ class CommandExecutor:
         if self.origin is not None:
             # PX4 arms in Hold only with a global position: let the EKF origin exchange finish first.
             self.origin.wait_settled(deadline - 0.5)
-        # Before the vision: a clock that cannot be trusted is why no pose reached the autopilot.  Just
-        # after start-up its first exchanges may still be under way: give them a moment (bounded).
+        return self._settled(deadline)
+
+    def _pose_problem(self) -> str | None:
+        """Why pose times cannot be trusted (the clock: checked first, it is why no pose would reach the
+        autopilot) or no fresh pose reached the autopilot (the vision sender says why), or None."""
         clock = self.clock_problem() if self.clock_problem is not None else None
+        return clock or self.vision.problem(time.monotonic(), self.vision_stale)
+
+    def _settled(self, deadline: float) -> str | None:
+        """:meth:`_pose_problem`, given a moment (bounded) to clear: just after start-up the clock's first
+        exchanges, or the first poses, may still be under way."""
+        problem = self._pose_problem()
         until = min(deadline - 0.5, time.monotonic() + CLOCK_SETTLE_S)
-        while clock is not None and self.clock_problem is not None and time.monotonic() < until:
+        while problem is not None and time.monotonic() < until:
             time.sleep(0.1)
-            clock = self.clock_problem()
-        if clock is not None:
-            return clock
-        age = self.vision.age(time.monotonic())
-        if age is None:
-            return "no vision pose sent to the autopilot yet"
-        if age > self.vision_stale:
-            return f"vision stale: last pose sent {age:.2f} s ago"
-        return None
+            problem = self._pose_problem()
+        return problem
 
     # -- operations ----------------------------------------------------------------------------------
     def _arm(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
@@ -306,7 +308,7 @@ class CommandExecutor:
         near = sep.path_problem(self.state.position(time.monotonic()), goal) if sep is not None else None
         if near is not None:
             return _refused(f"{near}: vehicles never meet")
-        before = self.forwarder.latched
+        snap = self.forwarder.snapshot()
         self.forwarder.start_goto(goal, yaw, src=getattr(self._src, "name", ""))
         if self.state.mode != "OFFBOARD":
             while not self.forwarder.live() and time.monotonic() < deadline:
@@ -314,7 +316,7 @@ class CommandExecutor:
             res = self._set_mode("OFFBOARD", deadline)
             if not res.ok:
                 self.forwarder.cancel_goto(f"OFFBOARD not engaged ({res.result})")
-                self.forwarder.restore_latch(before)
+                self.forwarder.restore(snap)
                 return res
         value: dict[str, Any] = {"goal": list(goal)}
         if wait:

@@ -206,7 +206,6 @@ class Gateway:
         )
 
     def _command_executor(self) -> CommandExecutor:
-        stale = self.options.vision_stale
         return CommandExecutor(
             vehicle=self.spec,
             arena=self.cfg.arena,
@@ -219,10 +218,8 @@ class Gateway:
             timesync=self.timesync,
             events=self.events,
             origin=self.origin,
-            vision_stale=stale,
-            # Checked before the vision's age, which is all the executor would say: the clock, then why
-            # vision went stale.
-            clock_problem=lambda: self.clock_problem() or self.vision.problem(time.monotonic(), stale),
+            vision_stale=self.options.vision_stale,
+            clock_problem=self.clock_problem,
         )
 
     def _message_handlers(self) -> dict[int, Callable[[Any, float], None]]:

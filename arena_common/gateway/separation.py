@@ -29,6 +29,7 @@ import time
 from dataclasses import dataclass
 
 from arena_common.core import wire
+from arena_common.geometry.segments import segment_distance
 
 __all__ = ["BRAKE_ACCEL", "FLEET_MAX_AGE", "Closing", "Separation"]
 
@@ -109,7 +110,7 @@ class Separation:
         for other, (q, _) in sorted(self.others(now).items()):
             if math.dist(start, q) < self.min_separation:
                 continue  # already close: flying away from it must stay possible
-            d = _segment_distance(start, goal, q)
+            d = segment_distance(start, goal, q)
             if d < self.min_separation:
                 return f"its path passes {d:.2f} m from {other} (min_separation {self.min_separation:.2f} m)"
         return None
@@ -165,12 +166,3 @@ def _stopping_time(speed: float) -> float:
     """How long, flown at ``speed``, covers what a vehicle goes before PX4's Hold has stopped it (and the
     fleet message is this old): ``speed · t`` is the braking path ``v·(v/(2·a) + delay)``."""
     return speed / (2.0 * BRAKE_ACCEL) + BRAKE_DELAY + FLEET_PERIOD
-
-
-def _segment_distance(a: Vec3, b: Vec3, q: Vec3) -> float:
-    """Distance from point ``q`` to the segment ``a``–``b``."""
-    ab = [b[i] - a[i] for i in range(3)]
-    aq = [q[i] - a[i] for i in range(3)]
-    n2 = sum(x * x for x in ab)
-    k = 0.0 if n2 == 0.0 else max(0.0, min(1.0, sum(ab[i] * aq[i] for i in range(3)) / n2))
-    return math.dist(q, tuple(a[i] + k * ab[i] for i in range(3)))

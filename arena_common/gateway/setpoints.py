@@ -472,12 +472,6 @@ class SetpointForwarder:
         """Why streaming is held back, or None."""
         return self._latched
 
-    def restore_latch(self, reason: str | None) -> None:
-        with self._lock:
-            if reason is not None and self._latched is None:
-                self._latched = reason
-                self._since = math.inf
-
     def streaming(self, now: float | None = None) -> bool:
         """Whether setpoints are being sent to the vehicle now."""
         now = time.monotonic() if now is None else now
