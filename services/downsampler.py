@@ -24,12 +24,13 @@ from arena_common.bus.session import BusOptions, Lane, typed
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
+from arena_common.core.services import by_module
 from arena_common.geometry.filters import FilterError
 from arena_common.pipeline.vision import VisionFilter, account
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.service import running
 
-SERVICE = "downsampler"
+SERVICE = by_module("services.downsampler").name  # its one name: arena_common/core/services.py
 QUEUE_CAPACITY = 16  # ≈ 90 ms of input at 180 Hz
 
 

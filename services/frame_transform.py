@@ -32,12 +32,13 @@ import typer
 from arena_common.bus.session import BusOptions, Lane, Publisher, typed
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
+from arena_common.core.services import by_module
 from arena_common.geometry.frames import FrameError
 from arena_common.pipeline.transform import Decimators, FleetPublisher, PoseConverter, frame_transform
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.service import running
 
-SERVICE = "transform"
+SERVICE = by_module("services.frame_transform").name  # its one name: arena_common/core/services.py
 SUBSCRIPTION = keys.FRAMES
 # One sample per mocap frame: the FIFO absorbs over a second of frames (at 180 Hz) of a stall without ever
 # dropping the frame a decimator needs.

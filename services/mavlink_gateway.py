@@ -17,13 +17,14 @@ import typer
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import GatewayError
+from arena_common.core.services import by_module
 from arena_common.gateway.gateway import Gateway, GatewayOptions
 from arena_common.gateway.origin import parse_origin
 from arena_common.mavlink.signing import vehicle_key
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.service import running
 
-SERVICE = "gateway"
+SERVICE = by_module("services.mavlink_gateway").name  # its one name: arena_common/core/services.py
 
 
 def main(

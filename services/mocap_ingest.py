@@ -20,11 +20,14 @@ import typer
 
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig
+from arena_common.core.services import by_module
 from arena_common.mocap.client import MocapError
 from arena_common.mocap.sources import MocapSource, describe_source, open_source
 from arena_common.pipeline.ingest import Ingest
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.service import running
+
+SERVICE = by_module("services.mocap_ingest").name  # its one name: arena_common/core/services.py
 
 
 def main(
@@ -37,7 +40,7 @@ def main(
 ) -> None:
     """Run until ``stop`` is set (or SIGINT/SIGTERM)."""
     # The ingest's clock stamps every pose: it is the arena's time reference (arena/sys/time).
-    with running("mocap", cfg, options, host=host, stop=stop, clock_reference=True) as svc:
+    with running(SERVICE, cfg, options, host=host, stop=stop, clock_reference=True) as svc:
         ingest = Ingest(svc, cfg)
         source: MocapSource | None = None
         backoff = 0.5

@@ -4,7 +4,7 @@
 on loopback only).  It boots instance ``px4_instance`` (:class:`~arena_common.runtime.px4_sitl.Px4Sitl`) with
 the boot parameters :func:`~arena_common.runtime.px4_sitl.arena_boot_params` gives for ``sim.px4_params``
 ("arena": as ``arena px4 setup`` leaves a lab's vehicle; "px4": PX4's defaults) and the vehicle's own
-``px4_params``; PX4's lines are printed as they come (``arena up`` prefixes them ``[px4_sitl.<d>]``).
+``px4_params``; PX4's lines are printed as they come (``arena up`` prefixes them ``[px4-sitl.<d>]``).
 
 When px4 exits while this service runs (``px4-shutdown --instance N``: SITL does not implement the
 MAVLink reboot command, it answers DENIED), it is booted again with the same working directory, so the
@@ -24,11 +24,12 @@ import typer
 
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig
+from arena_common.core.services import by_module
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.px4_sitl import Px4Sitl, boot_params, sitl_vehicle
 from arena_common.runtime.service import running
 
-SERVICE = "px4_sitl"
+SERVICE = by_module("services.px4_sitl").name  # its one name: arena_common/core/services.py
 REBOOT_DELAY = 0.5  # s between px4 exiting and booting again
 
 

@@ -31,12 +31,13 @@ from arena_common.bus.session import BusOptions
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
+from arena_common.core.services import by_module
 from arena_common.geometry.frames import quat_canonical, quat_from_yaw, quat_multiply, quat_normalize
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.px4_sitl import Px4SitlError, boot_params, find_build, ports, sih_home, sitl_vehicle
 from arena_common.runtime.service import running
 
-SERVICE = "px4_truth"
+SERVICE = by_module("services.px4_truth").name  # its one name: arena_common/core/services.py
 RATE = 100.0  # Hz asked of PX4 (its 25 Hz default is a coarse mocap)
 EARTH_RADIUS = 6371000.0  # m, the sphere PX4's map projection uses
 MSG_HIL_STATE_QUATERNION = 115

@@ -23,10 +23,13 @@ import zenoh
 from arena_common.bus.session import BusOptions, Channel, Received, Subscription
 from arena_common.core import keys
 from arena_common.core.config import ArenaConfig
+from arena_common.core.services import by_module
 from arena_common.recording.mcap import Recorder, Sample
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.process import lead_own_session
 from arena_common.runtime.service import running, yield_cpu
+
+SERVICE = by_module("services.recorder").name  # its one name: arena_common/core/services.py
 
 QUEUE_CAPACITY = 50_000  # samples; ≈10 s of a busy arena
 
@@ -51,7 +54,7 @@ def main(
     name: str | None = None,
 ) -> None:
     """Record until ``stop`` is set (or SIGINT/SIGTERM); ``directory`` overrides ``recorder.directory``."""
-    with running("recorder", cfg, options, host=host, stop=stop) as svc:
+    with running(SERVICE, cfg, options, host=host, stop=stop) as svc:
         try:
             config_text = Path(cfg.path).read_text(encoding="utf-8")
         except OSError:

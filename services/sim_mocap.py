@@ -39,6 +39,7 @@ from arena_common.bus.session import BusOptions
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError, InvalidName
+from arena_common.core.services import by_module
 from arena_common.geometry.frames import Calibration, FrameError, FrameTransform, UpAxis
 from arena_common.mocap.capture import CaptureError
 from arena_common.mocap.natnet import ModelDefs, NatNetError, RigidBodyDef, Version
@@ -58,7 +59,7 @@ from arena_common.sim.natnet_server import (
     sleep_until,
 )
 
-SERVICE = "sim_mocap"
+SERVICE = by_module("services.sim_mocap").name  # its one name: arena_common/core/services.py
 VERSIONS = ("3.0", "3.1", "4.0", "4.1")
 Occlusion = tuple[str, float, float]  # vehicle, start (s after start), duration (s)
 

@@ -25,13 +25,14 @@ from arena_common.bus.session import BusOptions, Publisher
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
+from arena_common.core.services import by_module
 from arena_common.mavlink import px4
 from arena_common.mavlink.signing import vehicle_key
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.service import running
 from arena_common.sim.autopilot import SimAutopilot, SimAutopilotError, SimClock, TruePose, run_autopilots
 
-SERVICE = "sim_vehicle"
+SERVICE = by_module("services.sim_vehicle").name  # its one name: arena_common/core/services.py
 PHYSICS_RATE = 250.0  # Hz, the simulated autopilots' physics tick
 
 

@@ -13,8 +13,9 @@ The rules:
 3. Only ``arena_common.sim``, the ``services.sim_*`` processes and the benchmarks import the simulator.
 4. The library imports no ``services``, ``bench``, ``tools`` or ``tests``.
 5. A service imports the library below ``cli``, never another service, ``cli``, ``bench``, ``tools`` or
-   ``tests``; every module the supervisor, ``arena run``/``arena sim`` or a systemd unit names by string
-   exists and has a ``main`` and a ``cli``, and every service module is named by one of them.
+   ``tests``; every module the table of services (``core/services.py``, which the supervisor, ``arena
+   run``/``arena sim`` and the systemd units read) names exists and has a ``main`` and a ``cli``, and
+   every service module is in that table.
 6. ``bench`` imports the library, ``bench`` and ``tools``; ``tools`` the library and ``tools``; the
    examples only the user's API (``arena_common`` itself).
 7. ``import arena_common`` (the user's API) loads neither the service runtime nor the bus security.
@@ -51,8 +52,8 @@ FOREIGN = ("services", "bench", "tools", "tests")
 OUTSIDE = {"bench": ("arena_common", "bench", "tools"), "tools": ("arena_common", "tools")}
 #: What ``import arena_common`` must not load.
 NOT_FOR_USERS = ("arena_common.runtime.service", "arena_common.bus.security")
-#: Where services are named by strings.
-NAMERS = ("arena_common/runtime/supervisor.py", "arena_common/cli/_services.py")
+#: Where services are named by strings: the one table of services.
+NAMERS = ("arena_common/core/services.py",)
 DOC = "docs/architecture.md"
 BEGIN, END = "<!-- layers: drawn by python -m tools.layers --write -->", "<!-- /layers -->"
 
@@ -127,7 +128,7 @@ def _outside(rel: str, tree: str, target: str) -> list[str]:
 
 
 def named_services(root: Path = ROOT) -> dict[str, str]:
-    """``services.X`` module → where it is named (the supervisor's and the CLI's tables, systemd units)."""
+    """``services.X`` module → where it is named (the table of services; a systemd unit naming one itself)."""
     found: dict[str, str] = {}
     for rel in NAMERS:
         path = root / rel
@@ -155,7 +156,7 @@ def _services_named(root: Path) -> list[str]:
     for path in sorted((root / "services").glob("*.py")):
         module = f"services.{path.stem}"
         if path.stem != "__init__" and module not in named:
-            out.append(f"services/{path.name}: no supervisor table, `arena run`/`arena sim` or unit names it")
+            out.append(f"services/{path.name}: not in the table of services ({NAMERS[0]})")
     return out
 
 

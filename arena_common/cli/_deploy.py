@@ -26,6 +26,7 @@ from arena_common.cli._globals import config as global_config
 from arena_common.core import keys
 from arena_common.core.config import ArenaConfig, HostSpec
 from arena_common.core.errors import ArenaError, BusError, ConfigError
+from arena_common.core.services import ServiceInfo, missing_extra, started_by
 from arena_common.runtime.options import (
     HostOpt,
 )
@@ -38,19 +39,7 @@ TEMPLATE_DIR = REPO / "deploy" / "systemd"
 ENV_FILE = "/etc/arena/arena.env"
 UNIT_DIR = "etc/systemd/system"
 
-# Config service → unit files; per-vehicle services → template units instantiated per vehicle.
-SERVICE_UNITS: dict[str, tuple[str, ...]] = {
-    "router": ("arena-router.service",),
-    "mocap": ("arena-mocap.service",),
-    "transform": ("arena-transform.service",),
-    "recorder": ("arena-recorder.service",),
-    "sim": ("arena-sim-vehicle.service", "arena-sim-mocap.service"),
-    "ros2": ("arena-ros2.service",),
-}
-VEHICLE_UNITS: dict[str, str] = {
-    "downsampler": "arena-downsampler@.service",
-    "gateway": "arena-gateway@.service",
-}
+ROUTER_UNIT = "arena-router.service"  # the router is no service module: its unit is its own
 
 ConfigArg = Annotated[
     Path | None,
@@ -93,6 +82,19 @@ class UnitSet:
 def _recordings_dir(cfg: ArenaConfig, workdir: Path) -> str:
     d = Path(cfg.recorder.directory)
     return str(d if d.is_absolute() else workdir / d)
+
+
+def missing_extras(host: HostSpec) -> list[tuple[str, str]]:
+    """The host's services whose optional extra is not installed here, each with why."""
+    found = [(s.name, missing_extra(s.extra)) for w in host.services for s in started_by(w) if s.extra]
+    return [(name, why) for name, why in found if why]
+
+
+def unit_fields(service: ServiceInfo) -> dict[str, str]:
+    """What a service's unit template is filled with from the table of services: its name, module and
+    description (a vehicle's unit names its vehicle, ``%i``)."""
+    summary = f"{service.summary} (%i)" if service.scope == "vehicle" else service.summary
+    return {"@SUMMARY@": summary, "@MODULE@": service.module, "@NAME@": service.name}
 
 
 def render_systemd(
@@ -140,16 +142,17 @@ def render_systemd(
     files: dict[str, str] = {}
     wants: list[str] = []
     simulated = any(v.simulated for v in cfg.vehicles.values())
-    for service in h.services:
-        for unit in SERVICE_UNITS[service]:
-            if unit == "arena-sim-vehicle.service" and not simulated:
-                continue  # no autopilot = "sim" vehicle: the Motive emulator runs alone
-            files[f"{UNIT_DIR}/{unit}"] = fill(unit)
-            wants.append(unit)
-    for vservice in h.vehicle_services if h.vehicles else ():
-        template = VEHICLE_UNITS[vservice]
-        files[f"{UNIT_DIR}/{template}"] = fill(template)
-        wants += [template.replace("@.", f"@{v}.") for v in h.vehicles]
+    if "router" in h.services:
+        files[f"{UNIT_DIR}/{ROUTER_UNIT}"] = fill(ROUTER_UNIT)
+        wants.append(ROUTER_UNIT)
+    for service in (s for word in h.services for s in started_by(word)):
+        if service.name == "sim-vehicle" and not simulated:
+            continue  # no autopilot = "sim" vehicle: the Motive emulator runs alone
+        files[f"{UNIT_DIR}/{service.unit}"] = fill(service.unit, unit_fields(service))
+        wants.append(service.unit)
+    for service in (s for word in h.vehicle_services for s in started_by(word)) if h.vehicles else ():
+        files[f"{UNIT_DIR}/{service.unit}"] = fill(service.unit, unit_fields(service))
+        wants += [service.unit.replace("@.", f"@{v}.") for v in h.vehicles]
     if not wants:
         raise DeployError(f"{cfg.path}: host {h.name!r} runs no service and no vehicle: nothing to install")
     files[f"{UNIT_DIR}/arena.target"] = fill("arena.target", {"@WANTS@": " ".join(wants)})
@@ -243,6 +246,9 @@ def up(
         raise typer.Exit(2) from None
     if not specs:
         typer.echo(f"error: {cfg.path}: host {h.name!r} runs no service and no vehicle", err=True)
+        raise typer.Exit(2)
+    for word, why in missing_extras(h):
+        typer.echo(f"error: {cfg.path}: host {h.name!r} runs {word}: {why}", err=True)
         raise typer.Exit(2)
     if dry_run:
         typer.echo(f"# host {h.name} of {cfg.path}: {len(specs)} processes")

@@ -55,7 +55,7 @@ class Globals:
 
     def argv(self) -> list[str]:
         """These options as a command line (long forms), for whatever runs the command: ``arena run`` and
-        ``arena sim`` hand them to their service this way, so ``arena sim mocap -c lab.toml`` and
+        ``arena sim`` hand them to their service this way, so ``arena sim motive -c lab.toml`` and
         ``python -m services.sim_mocap -c lab.toml`` are one command line."""
         args: list[str] = []
         if self.config is not None:

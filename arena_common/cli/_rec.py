@@ -16,6 +16,7 @@ from arena_common.cli._globals import bus as global_bus
 from arena_common.cli._globals import config as global_config
 from arena_common.core import keys, wire
 from arena_common.core.errors import ArenaError
+from arena_common.core.services import missing_extra
 from arena_common.recording import mcap as recording
 from arena_common.runtime.options import (
     HostOpt,
@@ -271,6 +272,9 @@ def export_cmd(
 ) -> None:
     """One table per key, nested fields flattened (p.0, p.1, p.2…), with time columns; or a ROS 2 bag."""
     if ros2:
+        why = missing_extra("ros2")
+        if why:
+            raise _fail(ArenaError(f"--ros2: {why}"))
         from arena_common.ros2.export import export_ros2  # rosbags loads only when asked for
 
         try:

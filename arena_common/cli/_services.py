@@ -16,37 +16,21 @@ from collections.abc import Callable
 import typer
 
 from arena_common.cli import _globals
-
-RUN = {
-    "mocap": (
-        "services.mocap_ingest",
-        "Mocap ingest: NatNet (or another source) → arena/sys/frames (and arena/<drone>/mocap).",
-    ),
-    "transform": (
-        "services.frame_transform",
-        "Frame transform: arena/sys/frames → arena/<drone>/pose (NED/FRD).",
-    ),
-    "downsampler": ("services.downsampler", "Downsampler: arena/<drone>/pose → arena/<drone>/vision."),
-    "gateway": ("services.mavlink_gateway", "MAVLink gateway of one vehicle: the bus ↔ its PX4."),
-    "recorder": ("services.recorder", "Telemetry recorder: keys → MCAP files."),
-    "px4-sitl": ("services.px4_sitl", 'PX4 SITL autopilot of one autopilot = "px4-sitl" vehicle.'),
-    "px4-truth": ("services.px4_truth", "PX4 SITL ground truth → arena/<drone>/truth (Motive emulator)."),
-    "ros2": ("services.ros2", "ROS 2 over rmw_zenoh: arena topics, TF, goto/cmd_vel (docs/ros2.md)."),
-}
-SIM = {
-    "vehicle": ("services.sim_vehicle", "Simulated PX4 vehicles speaking MAVLink 2."),
-    "mocap": ("services.sim_mocap", "Motive emulator: a NatNet server streaming the simulated vehicles."),
-    "world": ("services.sim_world", "The whole simulated world: vehicles and Motive emulator."),
-}
+from arena_common.core.services import SERVICES, Group, ServiceInfo, missing_extra
 
 
-def _lazy(module_name: str) -> Callable[[typer.Context], None]:
-    """A command that imports ``module_name`` when run and hands it every argument: its own, and the
+def _lazy(service: ServiceInfo) -> Callable[[typer.Context], None]:
+    """A command that imports the service's module when run and hands it every argument: its own, and the
     shared ones (``--config``, ``--mode``…) that the ``arena`` group took in front of the sub-command
-    (:func:`~arena_common.cli._globals.hoist`)."""
+    (:func:`~arena_common.cli._globals.hoist`).  A missing optional extra is said, exit 2, before any
+    import of it."""
 
     def command(ctx: typer.Context) -> None:
-        module = importlib.import_module(module_name)
+        why = missing_extra(service.extra) if service.extra else None
+        if why:
+            typer.echo(f"error: {ctx.command_path}: {why}", err=True)
+            raise typer.Exit(2)
+        module = importlib.import_module(service.module)
         app = typer.Typer(add_completion=False, pretty_exceptions_enable=False)
         app.command()(module.cli)
         typer.main.get_command(app).main(
@@ -56,17 +40,19 @@ def _lazy(module_name: str) -> Callable[[typer.Context], None]:
     return command
 
 
-def _group(help_text: str, table: dict[str, tuple[str, str]]) -> typer.Typer:
-    group = typer.Typer(help=help_text, no_args_is_help=True)
+def _group(help_text: str, group: Group) -> typer.Typer:
+    app = typer.Typer(help=help_text, no_args_is_help=True)
     settings = {"allow_extra_args": True, "ignore_unknown_options": True}
-    for name, (module_name, text) in table.items():
-        group.command(name, help=text, context_settings=settings, add_help_option=False)(_lazy(module_name))
-    return group
+    for s in SERVICES:
+        if s.group == group:
+            text = f"{s.summary[:1].upper()}{s.summary[1:]}."
+            app.command(s.command, help=text, context_settings=settings, add_help_option=False)(_lazy(s))
+    return app
 
 
 def register(app: typer.Typer) -> None:
-    """Add ``run`` and ``sim`` to ``app``."""
-    app.add_typer(_group("Run one arena service in the foreground.", RUN), name="run")
+    """Add ``run`` and ``sim`` to ``app``: one command per service of :data:`~arena_common.core.services.SERVICES`."""
+    app.add_typer(_group("Run one arena service in the foreground.", "run"), name="run")
     app.add_typer(
-        _group("Run the simulated world: vehicles that speak MAVLink, a Motive emulator.", SIM), name="sim"
+        _group("Run the simulated world: vehicles that speak MAVLink, a Motive emulator.", "sim"), name="sim"
     )

@@ -29,12 +29,9 @@ from msgspec import Meta
 from arena_common.core import keys
 from arena_common.core.endpoints import endpoint_host, is_loopback, mirror_connection, udp_listen_port
 from arena_common.core.errors import ConfigError, InvalidName
+from arena_common.core.services import VEHICLE_SERVICES, HostService, VehicleService
 
-Service = Literal["router", "mocap", "transform", "recorder", "sim", "ros2"]
-VehicleService = Literal["downsampler", "gateway"]
 ZenohMode = Literal["peer", "client", "router"]
-SERVICES: tuple[Service, ...] = get_args(Service)
-VEHICLE_SERVICES: tuple[VehicleService, ...] = get_args(VehicleService)
 ZENOH_MODES: tuple[ZenohMode, ...] = get_args(ZenohMode)
 PX4_SITL_MAX_INSTANCE = 9  # instance 10 would send its offboard link to 14550, the ground stations' port
 PX4_SITL_OFFBOARD_PORT = 14540  # + instance: where PX4 SITL sends its offboard link
@@ -111,7 +108,7 @@ class HostSpec(Spec, frozen=True):
     """One computer: what it runs."""
 
     name: str
-    services: tuple[Service, ...] = ()
+    services: tuple[HostService, ...] = ()
     vehicles: tuple[str, ...] = ()
     # Default: both, or only the gateway when the transform decimates (pipeline.decimate).
     vehicle_services: tuple[VehicleService, ...] = VEHICLE_SERVICES

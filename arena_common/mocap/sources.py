@@ -34,6 +34,7 @@ from typing import Any, Protocol
 import msgpack
 
 from arena_common.core.config import ArenaConfig, MocapSpec
+from arena_common.core.services import missing_extra
 from arena_common.mocap.client import MocapError, NatNetClient, TimedFrame
 from arena_common.mocap.natnet import RigidBody
 
@@ -371,12 +372,9 @@ class MotionCaptureSource:
 
     def open(self) -> MotionCaptureSource:
         """Check the library is installed and start the child."""
-        try:
-            import motioncapture  # noqa: F401
-        except ImportError:
-            raise MocapError(
-                "mocap.source = 'motioncapture' needs the 'motioncapture' package (pip install motioncapture)"
-            ) from None
+        why = missing_extra("mocap")
+        if why:
+            raise MocapError(f"mocap.source = 'motioncapture': {why}")
         self._start()
         return self
 

@@ -42,27 +42,9 @@ from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig, HostSpec
 from arena_common.core.endpoints import split_endpoint
 from arena_common.core.errors import ArenaError
+from arena_common.core.services import SERVICES, ServiceInfo, started_by
 from arena_common.runtime.process import ChildProcess, StopSignals, describe_exit
 
-# Config service name → (process name, module) pairs; "sim" is the simulated world: the simulated
-# autopilots of the ``autopilot = "sim"`` vehicles (none: not started) and the Motive emulator.
-SERVICE_PROCESSES: Mapping[str, tuple[tuple[str, str], ...]] = {
-    "mocap": (("mocap", "services.mocap_ingest"),),
-    "transform": (("transform", "services.frame_transform"),),
-    "recorder": (("recorder", "services.recorder"),),
-    "sim": (("sim_vehicle", "services.sim_vehicle"), ("sim_mocap", "services.sim_mocap")),
-    "ros2": (("ros2", "services.ros2"),),
-}
-VEHICLE_PROCESSES: Mapping[str, str] = {
-    "downsampler": "services.downsampler",
-    "gateway": "services.mavlink_gateway",
-}
-# An ``autopilot = "px4-sitl"`` vehicle's autopilot and its ground-truth bridge: started on the host
-# that runs its gateway (PX4 SITL talks on loopback only), before the vehicle's own services.
-PX4_SITL_PROCESSES: tuple[tuple[str, str], ...] = (
-    ("px4_sitl", "services.px4_sitl"),
-    ("px4_truth", "services.px4_truth"),
-)
 ROUTER_MODULE = "arena_common.cli"
 SUPERVISOR_SERVICE = "supervisor"
 _COLOURS = ("36", "32", "33", "35", "34", "91", "92", "93", "95", "96")
@@ -192,17 +174,17 @@ def plan(
         argv = (python, "-m", ROUTER_MODULE, "router", *common, *_bus_args(options, router=True))
         specs.append(ProcessSpec("router", argv, ready_port=ready))
     options = host_options(cfg, h, options)
-    for service in h.services:
-        for name, module in _service_processes(cfg, service):
-            specs.append(ProcessSpec(name, (python, "-m", module, *common, *level, *_bus_args(options))))
+    for word in h.services:
+        for s in _host_processes(cfg, word):
+            specs.append(ProcessSpec(s.name, (python, "-m", s.module, *common, *level, *_bus_args(options))))
     for vehicle in h.vehicles:
-        if cfg.vehicle(vehicle).px4_sitl and "gateway" in h.vehicle_services:
-            for name, module in PX4_SITL_PROCESSES:
-                argv = (python, "-m", module, *common, "--vehicle", vehicle, *level)
-                specs.append(ProcessSpec(f"{name}.{vehicle}", (*argv, *_bus_args(options))))
-        for vservice in h.vehicle_services:
-            argv = (python, "-m", VEHICLE_PROCESSES[vservice], *common, "--vehicle", vehicle, *level)
-            specs.append(ProcessSpec(f"{vservice}.{vehicle}", (*argv, *_bus_args(options))))
+        # An ``autopilot = "px4-sitl"`` vehicle's autopilot and its ground-truth bridge start on the host
+        # that runs its gateway (PX4 SITL talks on loopback only), before the vehicle's own services.
+        px4 = [s for s in SERVICES if s.scope == "px4-sitl"] if cfg.vehicle(vehicle).px4_sitl else []
+        own = [s for word in h.vehicle_services for s in started_by(word)]
+        for s in (px4 if "gateway" in h.vehicle_services else []) + own:
+            argv = (python, "-m", s.module, *common, "--vehicle", vehicle, *level)
+            specs.append(ProcessSpec(f"{s.name}.{vehicle}", (*argv, *_bus_args(options))))
     return specs
 
 
@@ -223,16 +205,17 @@ def sim_world_plan(
         common += ["--host", host]
     level = ["--log-level", log_level] if log_level else []
     return [
-        ProcessSpec(name, (python, "-m", module, *common, *level, *_bus_args(options)))
-        for name, module in _service_processes(cfg, "sim")
+        ProcessSpec(s.name, (python, "-m", s.module, *common, *level, *_bus_args(options)))
+        for s in _host_processes(cfg, "sim")
     ]
 
 
-def _service_processes(cfg: ArenaConfig, service: str) -> tuple[tuple[str, str], ...]:
-    """The processes of a host service; "sim" without simulated vehicles is the Motive emulator alone."""
-    processes = SERVICE_PROCESSES.get(service, ())
-    if service == "sim" and not any(v.simulated for v in cfg.vehicles.values()):
-        processes = tuple(p for p in processes if p[0] != "sim_vehicle")
+def _host_processes(cfg: ArenaConfig, word: str) -> tuple[ServiceInfo, ...]:
+    """The processes a host's service word starts; "sim" without simulated vehicles is the Motive emulator
+    alone (the router is not a service module: :func:`plan` starts it first)."""
+    processes = started_by(word)
+    if word == "sim" and not any(v.simulated for v in cfg.vehicles.values()):
+        processes = tuple(s for s in processes if s.name != "sim-vehicle")
     return processes
 
 

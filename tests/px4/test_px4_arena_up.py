@@ -41,8 +41,8 @@ def test_arena_up_boots_px4_sitl_and_stops_it(tmp_path: Path, px4_pool: Instance
                     what="d1: link, vision fused and setup verified",
                 )
                 alive = {k.rsplit("/", 1)[-1] for k in arena.bus.alive("arena/sys/alive/**", 2.0)}
-                assert {"px4_sitl.d1", "px4_truth.d1", "sim_mocap", "gateway.d1"} <= alive, alive
-                assert "sim_vehicle" not in alive  # no vehicle is simulated: the Motive emulator runs alone
+                assert {"px4-sitl.d1", "px4-truth.d1", "sim-motive", "gateway.d1"} <= alive, alive
+                assert "sim-vehicle" not in alive  # no vehicle is simulated: the Motive emulator runs alone
                 flags = wait_for(
                     lambda: (f := listener(n, "estimator_status_flags")) and f.get("cs_yaw_align") and f,
                     timeout=30,
@@ -53,7 +53,7 @@ def test_arena_up_boots_px4_sitl_and_stops_it(tmp_path: Path, px4_pool: Instance
                 assert d1.mocap is not None and abs(d1.mocap.p[0] + 1.0) < 0.05  # at sim.start, seen by mocap
 
                 # A SITL's reboot: px4 exits (SITL answers MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN with DENIED, so
-                # `px4-shutdown` it is) and px4_sitl.d1 boots it again with the parameters it saved.
+                # `px4-shutdown` it is) and px4-sitl.d1 boots it again with the parameters it saved.
                 assert run_tool(n, "param", "set", "MPC_XY_CRUISE", "3.5").returncode == 0
                 assert run_tool(n, "param", "save").returncode == 0
                 run_tool(n, "shutdown")
@@ -81,6 +81,6 @@ def test_arena_up_boots_px4_sitl_and_stops_it(tmp_path: Path, px4_pool: Instance
         assert up.returncode == 0, (tmp_path / "arena.log").read_text()[-3000:]
         assert not instance_busy(n)  # PX4 stopped with the arena
         text = (tmp_path / "arena.log").read_text(errors="replace")
-        assert "[px4_sitl.d1] INFO  [px4] Startup script returned successfully" in text
+        assert "[px4-sitl.d1] INFO  [px4] Startup script returned successfully" in text
     finally:
         px4_pool.give_back(n)

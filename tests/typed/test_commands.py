@@ -74,7 +74,7 @@ def arena(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Arena]:
     cfg = Typed(d, f"tcp/127.0.0.1:{free_port()}", router=True, px4=False, services=["recorder"])
     with commands(d) as start:
         up = start("up", str(cfg.path), "--host", "typed")
-        up.wait_line(r"starting router, sim_vehicle, sim_mocap, mocap, transform, recorder")
+        up.wait_line(r"starting router, sim-vehicle, sim-motive, mocap, transform, recorder")
         the_arena = Arena(cfg, up)
         the_arena.wait_state("x7's vision fused", lambda s: bool(s.get("vis_fused")), timeout=START_S * 2)
         yield the_arena

@@ -443,8 +443,8 @@ def test_checking_a_lab(tmp_path: Path, typed: Callable[..., Command]) -> None:
             "router",
             "mocap",
             "transform",
-            "sim_mocap",
-            "sim_vehicle",
+            "sim-motive",
+            "sim-vehicle",
             "gateway.c1",
             "downsampler.c1",
         ):

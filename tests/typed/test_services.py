@@ -42,36 +42,36 @@ SERVICES: list[tuple[str, list[str], set[str], str, list[tuple[str, str]]]] = [
     (
         "sim-vehicle",
         ["sim", "vehicle", "-c", "{CFG}"],
-        {"sim_vehicle"},
+        {"sim-vehicle"},
         r"simulating x7 \(sysid 7, udpout:127\.0\.0\.1:{x7}\)",
         [],
     ),
     (
-        "sim-mocap",
-        ["sim", "mocap", "-c", "{CFG}"],
-        {"sim_mocap"},
+        "sim-motive",
+        ["sim", "motive", "-c", "{CFG}"],
+        {"sim-motive"},
         r"server on 127\.0\.0\.1:{cmd}",
         [("udp", "{cmd}")],
     ),
     (
-        "sim-mocap-config-first",
-        ["-c", "{CFG}", "sim", "mocap"],
-        {"sim_mocap"},
+        "sim-motive-config-first",
+        ["-c", "{CFG}", "sim", "motive"],
+        {"sim-motive"},
         r"streaming x7 \(id",
         [("udp", "{cmd}")],
     ),
     (
-        "sim-mocap-long-option",
-        ["sim", "mocap", "--config", "{CFG}"],
-        {"sim_mocap"},
+        "sim-motive-long-option",
+        ["sim", "motive", "--config", "{CFG}"],
+        {"sim-motive"},
         r"server on 127\.0\.0\.1:{cmd}",
         [("udp", "{cmd}")],
     ),
     (
         "sim-world",
         ["sim", "world", "-c", "{CFG}", "--host", "typed"],
-        {"sim_vehicle", "sim_mocap"},
-        r"\[sim_mocap\] .*streaming x7",
+        {"sim-vehicle", "sim-motive"},
+        r"\[sim-motive\] .*streaming x7",
         [("udp", "{cmd}")],
     ),
     (
@@ -106,7 +106,7 @@ SERVICES: list[tuple[str, list[str], set[str], str, list[tuple[str, str]]]] = [
     (
         "run-px4-truth",
         ["run", "px4-truth", "-c", "{CFG}", "--vehicle", "x8"],
-        {"px4_truth.x8"},
+        {"px4-truth.x8"},
         r"udp 127\.0\.0\.1:{truth} \(PX4 SITL instance",
         [("udp", "{truth}")],
     ),
@@ -114,7 +114,7 @@ SERVICES: list[tuple[str, list[str], set[str], str, list[tuple[str, str]]]] = [
 
 
 @pytest.mark.covers(
-    "arena sim vehicle", "arena sim mocap", "arena sim world", "arena run mocap", "arena run transform",
+    "arena sim vehicle", "arena sim motive", "arena sim world", "arena run mocap", "arena run transform",
     "arena run downsampler", "arena run gateway", "arena run recorder", "arena run px4-truth",
 )  # fmt: skip
 @pytest.mark.parametrize(
@@ -172,11 +172,11 @@ def test_the_bus_options_reach_the_service_too(
 # -- a named config that cannot be read --------------------------------------------------------------------
 
 RUN = ["mocap", "transform", "downsampler", "gateway", "recorder", "px4-sitl", "px4-truth"]
-SIM = ["vehicle", "mocap", "world"]
+SIM = ["vehicle", "motive", "world"]
 MISSING: list[list[str]] = [
     *(["run", name, "--vehicle", "x7", "-c", "{MISSING}"] for name in RUN),
     *(["sim", name, "-c", "{MISSING}"] for name in SIM),
-    ["-c", "{MISSING}", "sim", "mocap"],
+    ["-c", "{MISSING}", "sim", "motive"],
     ["run", "gateway", "--vehicle", "x7", "--config={MISSING}"],
     ["up", "-c", "{MISSING}"],
     ["-c", "{MISSING}", "up"],
@@ -234,8 +234,8 @@ def test_sim_world_and_its_children_end_on_any_stop_signal(
 ) -> None:
     cfg = Typed(tmp_path, router_endpoint)
     cmd = typed("sim", "world", "-c", str(cfg.path), "--host", "typed")
-    cmd.wait_line(r"\[sim_mocap\] .*streaming x7")
-    cmd.wait_line(r"\[sim_vehicle\] .*simulating x7")
+    cmd.wait_line(r"\[sim-motive\] .*streaming x7")
+    cmd.wait_line(r"\[sim-vehicle\] .*simulating x7")
     assert len(leftovers([str(cfg.path)])) >= 3  # the supervisor and its two children
     code = stops_cleanly(cmd, [str(tmp_path)], sig, r"^\[arena\] stopping " if twice else None)
     assert code == 0, cmd.output()

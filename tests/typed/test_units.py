@@ -92,8 +92,8 @@ class Ground:
 # unit → (presence id, a line its log must show); {cmd}, {x7}, {rec}, {endpoint} are the config's.
 EXPECTED: dict[str, tuple[str, str]] = {
     "arena-router.service": ("router", r"arena\.router: routing on {endpoint}$"),
-    "arena-sim-vehicle.service": ("sim_vehicle", r"simulating x7 \(sysid 7, udpout:127\.0\.0\.1:{x7}\)"),
-    "arena-sim-mocap.service": ("sim_mocap", r"server on 127\.0\.0\.1:{cmd}"),
+    "arena-sim-vehicle.service": ("sim-vehicle", r"simulating x7 \(sysid 7, udpout:127\.0\.0\.1:{x7}\)"),
+    "arena-sim-motive.service": ("sim-motive", r"server on 127\.0\.0\.1:{cmd}"),
     "arena-mocap.service": ("mocap", r"source natnet \(server 127\.0\.0\.1:{cmd},"),
     "arena-transform.service": ("transform", r"arena\.transform: started \(host ground"),
     "arena-recorder.service": ("recorder", r"arena\.recorder: recording to {rec}/"),
@@ -243,7 +243,7 @@ def _stops_on_sigterm(unit: Unit, proc: Program, tmp_path: Path) -> None:
     "unit arena-downsampler@.service",
     "unit arena-gateway@.service",
     "unit arena-sim-vehicle.service",
-    "unit arena-sim-mocap.service",
+    "unit arena-sim-motive.service",
     "unit arena-ros2.service",
 )
 @pytest.mark.timeout(180)

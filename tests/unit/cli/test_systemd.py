@@ -12,16 +12,10 @@ import pytest
 from typer.testing import CliRunner
 
 from arena_common.cli import app
-from arena_common.cli._deploy import (
-    SERVICE_UNITS,
-    TEMPLATE_DIR,
-    VEHICLE_UNITS,
-    DeployError,
-    render_systemd,
-    write_units,
-)
+from arena_common.cli._deploy import ROUTER_UNIT, TEMPLATE_DIR, DeployError, render_systemd, write_units
 from arena_common.core import config as config_mod
 from arena_common.core.errors import ConfigError
+from arena_common.core.services import SERVICES, by_name
 from tests.helpers import REPO, open_lab
 
 runner = CliRunner()
@@ -30,7 +24,7 @@ UNITS = "etc/systemd/system"
 
 
 def test_every_template_exists_and_is_hardened() -> None:
-    names = [u for units in SERVICE_UNITS.values() for u in units] + list(VEHICLE_UNITS.values())
+    names = [ROUTER_UNIT] + [s.unit for s in SERVICES if s.config]
     for name in names:
         text = (TEMPLATE_DIR / name).read_text()
         for line in (
@@ -53,6 +47,8 @@ def test_every_template_exists_and_is_hardened() -> None:
         )
         assert ("ReadWritePaths=" in text) == (name == "arena-recorder.service"), name
     assert "%i" in (TEMPLATE_DIR / "arena-gateway@.service").read_text()
+    # Every template is a unit of the table of services (or the router's): none left from a renamed one.
+    assert sorted(p.name for p in TEMPLATE_DIR.glob("*.service")) == sorted(names)
     assert (TEMPLATE_DIR / "arena.env").read_text().count("ARENA_") >= 2
 
 
@@ -78,6 +74,9 @@ def test_ground_host_units(tmp_path: Path) -> None:
     assert f"{start} --listen tcp/192.168.1.20:0\n" in mocap
     assert "User=pilot" in mocap and f"WorkingDirectory={tmp_path.resolve()}" in mocap
     assert "After=network-online.target arena-router.service" in mocap
+    # Names, modules and descriptions come from the table of services.
+    assert f"Description=Flying Arena: {by_name('mocap').summary}\n" in mocap
+    assert "SyslogIdentifier=arena-mocap\n" in mocap
     router = units.files[f"{UNITS}/arena-router.service"]
     assert (
         "-m arena_common.cli router --config" in router
@@ -87,6 +86,8 @@ def test_ground_host_units(tmp_path: Path) -> None:
     assert "ReadWritePaths=-/var/lib/arena/recordings" in recorder  # the lab config's absolute directory
     gateway = units.files[f"{UNITS}/arena-gateway@.service"]
     assert "--vehicle %i" in gateway and "PrivateDevices" not in gateway  # the radio is a device
+    assert f"Description=Flying Arena: {by_name('gateway').summary} (%i)\n" in gateway
+    assert "SyslogIdentifier=arena-gateway-%i\n" in gateway
     target = units.files[f"{UNITS}/arena.target"]
     wants = re.search(r"^Wants=(.*)$", target, re.M)
     assert wants is not None

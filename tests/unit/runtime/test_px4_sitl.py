@@ -251,12 +251,12 @@ def test_plan_starts_px4_sitl_with_its_gateway_and_sim_only_for_sim_vehicles(tmp
     cfg = _load(tmp_path, MIXED)
     names = [s.name for s in plan(cfg, "ground", python="/py")]
     assert names == [
-        "router", "sim_vehicle", "sim_mocap", "mocap", "transform",
+        "router", "sim-vehicle", "sim-motive", "mocap", "transform",
         "downsampler.s1", "gateway.s1",
-        "px4_sitl.p1", "px4_truth.p1", "downsampler.p1", "gateway.p1",
+        "px4-sitl.p1", "px4-truth.p1", "downsampler.p1", "gateway.p1",
         "downsampler.x1", "gateway.x1",
     ]  # fmt: skip
-    spec = next(s for s in plan(cfg, "ground", python="/py") if s.name == "px4_truth.p1")
+    spec = next(s for s in plan(cfg, "ground", python="/py") if s.name == "px4-truth.p1")
     assert spec.argv[:3] == ("/py", "-m", "services.px4_truth") and spec.argv[-2:] == ("--vehicle", "p1")
     # p2's gateway runs nowhere here: no PX4 SITL is started for it on the companion.
     assert [s.name for s in plan(cfg, "companion", python="/py")] == ["downsampler.p2"]
@@ -273,8 +273,8 @@ def test_the_motive_emulator_runs_alone_without_simulated_vehicles(tmp_path: Pat
     cfg = _load(tmp_path, no_sim)
     assert not any(v.simulated for v in cfg.vehicles.values())
     names = [s.name for s in plan(cfg, "ground", python="/py")]
-    assert "sim_mocap" in names and "sim_vehicle" not in names
-    assert [s.name for s in sim_world_plan(cfg, "ground", python="/py")] == ["sim_mocap"]
+    assert "sim-motive" in names and "sim-vehicle" not in names
+    assert [s.name for s in sim_world_plan(cfg, "ground", python="/py")] == ["sim-motive"]
     with pytest.raises(config_mod.ConfigError, match='no vehicle has autopilot = "sim"'):
         sim_vehicle.select_vehicles(cfg)
 
@@ -284,7 +284,7 @@ def test_systemd_units_follow_the_autopilots(tmp_path: Path) -> None:
         '[vehicles.s1]\nmavlink = "udpin:127.0.0.1:14601"\nsystem_id = 9\n', ""
     )
     units = render_systemd(_load(tmp_path, no_sim), "ground", workdir=tmp_path).files
-    assert any(f.endswith("arena-sim-mocap.service") for f in units)
+    assert any(f.endswith("arena-sim-motive.service") for f in units)
     assert not any(f.endswith("arena-sim-vehicle.service") for f in units)  # it would find nothing to fly
     with pytest.raises(DeployError, match=r"serves autopilot = \"px4-sitl\" vehicles \(p1\)"):
         render_systemd(_load(tmp_path, MIXED), "ground", workdir=tmp_path)

@@ -147,8 +147,8 @@ def test_plan_from_the_config(tmp_path: Path) -> None:
     names = [s.name for s in specs]
     assert names == [
         "router",
-        "sim_vehicle",
-        "sim_mocap",
+        "sim-vehicle",
+        "sim-motive",
         "mocap",
         "transform",
         *[f"{svc}.{v}" for v in ("d1", "d2", "d3") for svc in ("downsampler", "gateway")],
@@ -195,7 +195,7 @@ def test_plan_from_the_config(tmp_path: Path) -> None:
         ConfigError, match=r"host 'nope' is not in the config \(known hosts: ground, cc1, cc2\)"
     ):
         plan(lab, "nope")
-    assert [s.name for s in sim_world_plan(cfg, "sim")] == ["sim_vehicle", "sim_mocap"]
+    assert [s.name for s in sim_world_plan(cfg, "sim")] == ["sim-vehicle", "sim-motive"]
 
 
 def test_endpoint_address() -> None:
@@ -372,7 +372,7 @@ def test_arena_up_runs_restarts_and_stops_the_real_services(
         'services = ["sim", "mocap", "transform"]', 'services = ["router", "sim", "mocap", "transform"]'
     )
     path.write_text(text)
-    expected = {"router", "sim_vehicle", "sim_mocap", "mocap", "transform", "downsampler.d1", "gateway.d1"}
+    expected = {"router", "sim-vehicle", "sim-motive", "mocap", "transform", "downsampler.d1", "gateway.d1"}
     proc = processes("arena-up", [PYTHON, "-m", "arena_common.cli", "up", str(path), "--host", "test"])
 
     def grep(pattern: str) -> list[str]:
@@ -460,7 +460,7 @@ def test_sim_world_runs_both_parts_and_stops(
         )
         wait_for(
             lambda: (
-                {"sim_vehicle", "sim_mocap"}
+                {"sim-vehicle", "sim-motive"}
                 <= {k.rsplit("/", 1)[1] for k in bus.alive("arena/sys/alive/test/**")}
             ),
             timeout=30,

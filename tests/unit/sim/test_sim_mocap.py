@@ -360,7 +360,7 @@ def test_unicast_z_up_calibrated_pose_and_disconnect(
     cfg = with_mocap(arena_config(n_vehicles=1, extra=calibration, noise_m=0.0), up_axis="z", multicast=False)
     version = Version(4, 1)
     first, second = Client(cfg.mocap.command_port), Client(cfg.mocap.command_port)
-    stats = bus_factory().subscribe(keys.stats("test", "sim_mocap"), capacity=1)
+    stats = bus_factory().subscribe(keys.stats("test", "sim-motive"), capacity=1)
     try:
         with service(cfg, natnet_version="4.1", rate=120.0), publish_truth(bus_factory(), {"d1": truth()}):
             info = first.connect()
@@ -407,7 +407,7 @@ def test_occlusion_dropout_and_stats(
     cfg = arena_config(n_vehicles=2, noise_m=0.001, dropout=0.25, seed=7, mocap_rate=180.0)
     version = Version(3, 1)
     watcher = bus_factory()
-    stats = watcher.subscribe(keys.stats("test", "sim_mocap"), capacity=1)
+    stats = watcher.subscribe(keys.stats("test", "sim-motive"), capacity=1)
     data = multicast_receiver(cfg.mocap.data_port)
     try:
         d2 = truth(p=(0.0, 0.0, -1.0), q=(1.0, 0.0, 0.0, 0.0))

@@ -26,8 +26,7 @@ FILES = {
     "arena_common/sim/__init__.py": "",
     "arena_common/sim/world.py": "from arena_common.core import wire\n",
     "arena_common/cli/__init__.py": "",
-    "arena_common/cli/_services.py": 'RUN = {"x": ("services.ingest", "")}\n',
-    "arena_common/runtime/supervisor.py": 'P = {"sim": (("sim", "services.sim_world"),)}\n',
+    "arena_common/core/services.py": 'SERVICES = (S("x", "services.ingest"), S("s", "services.sim_world"))\n',
     "services/__init__.py": "",
     "services/ingest.py": "from arena_common.pipeline import ingest\ndef main(): ...\ndef cli(): ...\n",
     "services/sim_world.py": "from arena_common.sim import world\ndef main(): ...\ndef cli(): ...\n",
@@ -68,11 +67,7 @@ BREAKS = {
         "from services import ingest\ndef main(): ...\ndef cli(): ...\n",
         "a service imports another service",
     ),
-    "services/orphan.py": ("def main(): ...\ndef cli(): ...\n", "services/orphan.py: no supervisor table"),
-    "arena_common/cli/_more.py": (
-        'RUN = {"y": ("services.gone", "")}\n',
-        "names services.gone, which does not exist",
-    ),
+    "services/orphan.py": ("def main(): ...\ndef cli(): ...\n", "services/orphan.py: not in the table of services"),
     "services/nomain.py": ("def cli(): ...\n", "services/nomain.py: a service module without `main`"),
     # rule 6: bench, tools, examples
     "tools/bad_bench.py": ("from bench import run\n", "tools imports bench.run"),
@@ -98,24 +93,21 @@ def test_the_project_keeps_its_layers() -> None:
 
 def test_a_clean_tree_passes(tmp_path: Path) -> None:
     _write(tmp_path, FILES)
-    (tmp_path / "arena_common/cli/_services.py").write_text(
-        'RUN = {"x": ("services.ingest", ""), "s": ("services.sim_world", "")}\n'
-    )
     assert layers.problems(tmp_path) == []
 
 
 def test_each_rule_is_enforced(tmp_path: Path) -> None:
     _write(tmp_path, FILES)
     _write(tmp_path, {rel: text for rel, (text, _) in BREAKS.items()})
-    (tmp_path / "arena_common/cli/_services.py").write_text(
-        'RUN = {"x": ("services.ingest", ""), "b": ("services.bad_sim", ""), "o": ("services.bad_other", ""),'
-        ' "n": ("services.nomain", ""), "g": ("services.gone", "")}\n'
+    (tmp_path / layers.NAMERS[0]).write_text(
+        'SERVICES = (S("x", "services.ingest"), S("s", "services.sim_world"), S("b", "services.bad_sim"),'
+        ' S("o", "services.bad_other"), S("n", "services.nomain"), S("g", "services.gone"))\n'
     )
     _write(tmp_path, dict([USER_API]))
     found = "\n".join(layers.problems(tmp_path))
     for rel, (_, message) in BREAKS.items():
         assert message in found, f"{rel}: expected {message!r} in:\n{found}"
-    assert "arena_common/cli/_services.py: names services.gone, which does not exist" in found
+    assert f"{layers.NAMERS[0]}: names services.gone, which does not exist" in found
     assert "`import arena_common` loads arena_common.runtime.service" in found
     assert "services/ingest.py" not in found and "services/sim_world.py" not in found  # the good ones
 
