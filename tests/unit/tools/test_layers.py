@@ -67,7 +67,10 @@ BREAKS = {
         "from services import ingest\ndef main(): ...\ndef cli(): ...\n",
         "a service imports another service",
     ),
-    "services/orphan.py": ("def main(): ...\ndef cli(): ...\n", "services/orphan.py: not in the table of services"),
+    "services/orphan.py": (
+        "def main(): ...\ndef cli(): ...\n",
+        "services/orphan.py: not in the table of services",
+    ),
     "services/nomain.py": ("def cli(): ...\n", "services/nomain.py: a service module without `main`"),
     # rule 6: bench, tools, examples
     "tools/bad_bench.py": ("from bench import run\n", "tools imports bench.run"),
