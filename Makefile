@@ -53,6 +53,7 @@ lint: $(STAMP)
 	$(BIN)/ruff format --check arena_common services tests examples bench tools
 	$(BIN)/mypy
 	$(BIN)/python -m tools.wiredoc --check
+	$(BIN)/python -m tools.rosdoc --check
 	$(BIN)/python -m tools.layers
 	$(BIN)/python -m tools.typed --check
 

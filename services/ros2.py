@@ -2,9 +2,9 @@
 safety path (:mod:`arena_common.ros2`; docs/ros2.md).
 
 One per arena (or one per host with ``--vehicle`` for that host's vehicles).  ROS 2 nodes on
-``rmw_zenoh_cpp`` connected to the arena's router see ``/arena/<d>/pose``, ``/arena/<d>/odom``,
-``/tf``, ``/tf_static``, ``/arena/<d>/battery``, ``/diagnostics`` and ``/rosout``, and command with
-``/arena/<d>/goto`` and ``/arena/<d>/cmd_vel``.
+``rmw_zenoh_cpp`` connected to the arena's router see the topics of :data:`arena_common.ros2.topics.TOPICS`
+and command with its subscribed ones; an arena sample that is not bridged is counted among the service's
+rejected inputs, by key and reason.
 """
 
 from __future__ import annotations
@@ -56,6 +56,7 @@ def main(
             src=f"{svc.host}/ros2",
             stats=svc.stats,
             log=svc.log,
+            reject=svc.reject,
         )
         svc.log.info(
             "ROS 2 domain %d, node /%s (zid %s): %d vehicle(s)%s",

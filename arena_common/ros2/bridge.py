@@ -1,7 +1,12 @@
 """The arena as ROS 2 topics, and ROS 2 commands as the arena's: the ``ros2`` service's work.
 
-Out (arena → ROS 2, on the Zenoh threads that receive the arena's samples): see the topic table of
-:mod:`arena_common.ros2.messages`.
+Every topic, its QoS, its arena key and its conversion is a row of :data:`arena_common.ros2.topics.TOPICS`;
+the bridge loops over that table.
+
+Out (arena → ROS 2, on the Zenoh threads that receive the arena's samples): each arena key the table names
+is read with the typed reader every service uses (:func:`~arena_common.bus.session.typed`); a sample that
+does not decode, or carries another payload type, is counted and reported (``reject``) with its key and
+why, never published.
 
 In (ROS 2 → arena), per vehicle, each handled on the vehicle's own command thread, through the client
 library (:class:`~arena_common.client.vehicle.Vehicle`), so the gateway's safety rules, leases and the
@@ -31,20 +36,21 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from arena_common.bus.session import Bus, Handler, Received
+from arena_common.bus.session import Bus, Handler, Received, typed
 from arena_common.client.arena import Arena
 from arena_common.client.offboard import OffboardStream, setpoint_problem
 from arena_common.client.vehicle import Vehicle
-from arena_common.core import keys, wire
+from arena_common.core import keys
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ArenaError
-from arena_common.geometry.quat import quat_yaw
-from arena_common.ros2 import frames, messages, names, types
+from arena_common.ros2 import names, topics
+from arena_common.ros2.messages import Goto, RosInputError, Velocity, text_log
 from arena_common.ros2.node import Node, RosPublisher
+from arena_common.ros2.topics import Direction, Topic
 
 __all__ = ["CMD_VEL_TIMEOUT", "Bridge", "BridgeOptions"]
 
@@ -52,6 +58,7 @@ CMD_VEL_TIMEOUT = 0.5  # s without a Twist before the velocity stream ends (the 
 GOTO_TIMEOUT = 10.0  # s the gateway has to accept a goto
 WARN = 30  # rcl_interfaces/msg/Log levels
 INFO = 20
+_HOVER = Velocity((0.0, 0.0, 0.0), 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,79 +79,65 @@ class _Commands:
     def __init__(self, bridge: Bridge, vehicle: Vehicle) -> None:
         self.bridge = bridge
         self.vehicle = vehicle
-        self.queue: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=16)
+        self.queue: queue.Queue[Goto] = queue.Queue(maxsize=16)
         self.stream: OffboardStream | None = None
         self._lock = threading.Lock()
-        self._twist: tuple[float, tuple[float, float, float], float] | None = None  # arrival, body, yr
+        self._twist: tuple[float, Velocity] | None = None  # arrival (monotonic), velocity
         self.last_twist = -math.inf  # arrival (monotonic) of the newest accepted Twist
         self.engaged = 0  # velocity streams started (each engages OFFBOARD once)
         self.thread = threading.Thread(target=self._run, name=f"ros2:{vehicle.name}", daemon=True)
         self.thread.start()
 
-    def put(self, kind: str, msg: Any) -> None:
-        if kind == "twist":
-            self._offer_twist(msg)
+    def put(self, command: Goto | Velocity) -> None:
+        """On the subscriber's thread: queue a goto, or check a Twist and keep it as the newest."""
+        if isinstance(command, Velocity):
+            self._offer_twist(command)
             return
         try:
-            self.queue.put_nowait((kind, msg))
+            self.queue.put_nowait(command)
         except queue.Full:
-            self.bridge.refuse(self.vehicle.name, kind, "too many commands waiting: dropped")
+            self.bridge.refuse(self.vehicle.name, "goto", "too many commands waiting: dropped")
 
-    def _offer_twist(self, msg: Any) -> None:
-        """On the subscriber's thread: check the Twist at once; keep it as the newest, or refuse it."""
+    def refuse(self, what: str, reason: str) -> None:
+        """Refuse a command; a refused Twist makes a running stream hover (it still ends on time)."""
+        if what == "cmd_vel":
+            with self._lock:
+                if self.stream is not None:
+                    self._twist = (time.monotonic(), _HOVER)
+        self.bridge.refuse(self.vehicle.name, what, reason)
+
+    def _offer_twist(self, v: Velocity) -> None:
         now = time.monotonic()
-        body = (msg.linear.x, -msg.linear.y, -msg.linear.z)  # FLU → FRD
-        yr = -msg.angular.z
-        problem = None
-        if not all(math.isfinite(x) for x in (*body, yr)):
-            problem = "velocity not finite"
-        else:
-            problem = setpoint_problem(self.vehicle, {"v": body, "yr": yr})
-        with self._lock:
-            if problem is None:
-                self._twist, self.last_twist = (now, body, yr), now
-            elif self.stream is not None:  # hover rather than fly on; the stream still ends on time
-                self._twist = (now, (0.0, 0.0, 0.0), 0.0)
+        problem = setpoint_problem(self.vehicle, {"v": v.body, "yr": v.yaw_rate})
         if problem is not None:
-            self.bridge.refuse(self.vehicle.name, "cmd_vel", problem)
+            self.refuse("cmd_vel", problem)
+            return
+        with self._lock:
+            self._twist, self.last_twist = (now, v), now
 
     def _run(self) -> None:
         while not self.bridge.stopping.is_set():
             try:
-                kind, msg = self.queue.get(timeout=0.02)
+                goto: Goto | None = self.queue.get(timeout=0.02)
             except queue.Empty:
-                kind, msg = "", None
+                goto = None
             try:
-                if kind == "goto":
-                    self._goto(msg)
+                if goto is not None:
+                    self._goto(goto)
                 with self._lock:
                     twist, self._twist = self._twist, None
                 if twist is not None:
-                    self._fly(twist)
+                    self._fly(twist[1])
                 self._watchdog()
             except Exception as exc:  # one bad command must not end the vehicle's command thread
-                self.bridge.refuse(self.vehicle.name, kind or "stream", f"{type(exc).__name__}: {exc}")
+                what = "goto" if goto is not None else "stream"
+                self.bridge.refuse(self.vehicle.name, what, f"{type(exc).__name__}: {exc}")
         self._end_stream()
 
     # -- goto ------------------------------------------------------------------------------------------
-    def _goto(self, msg: Any) -> None:
+    def _goto(self, goto: Goto) -> None:
         name = self.vehicle.name
-        frame = msg.header.frame_id or messages.MAP
-        pos = (msg.pose.position.x, msg.pose.position.y, msg.pose.position.z)
-        o = msg.pose.orientation
-        q = (o.w, o.x, o.y, o.z)
-        if frame == messages.MAP:
-            p = frames.enu_to_ned(pos)
-            yaw = None if not any(q) else frames.ros_yaw_to_heading(quat_yaw(q))
-        elif frame == messages.NED_FRAME:
-            p = (float(pos[0]), float(pos[1]), float(pos[2]))
-            yaw = None if not any(q) else quat_yaw(q)
-        else:
-            self.bridge.refuse(name, "goto", f"frame {frame!r} unknown: use {messages.MAP!r} or 'arena_ned'")
-            return
-        if not all(math.isfinite(x) for x in (*p, *q)):
-            self.bridge.refuse(name, "goto", "position or orientation not finite")
-            return
+        p, yaw = goto.p, goto.yaw
         fields: dict[str, Any] = {"p": p} if yaw is None else {"p": p, "yaw": yaw}
         problem = setpoint_problem(self.vehicle, fields)
         if problem is not None:
@@ -162,10 +155,10 @@ class _Commands:
         self.bridge.accepted(name, "goto", f"goto {p[0]:.2f} {p[1]:.2f} {p[2]:.2f} (NED): {res.result}")
 
     # -- cmd_vel ---------------------------------------------------------------------------------------
-    def _fly(self, twist: tuple[float, tuple[float, float, float], float]) -> None:
+    def _fly(self, v: Velocity) -> None:
         """Fly the newest Twist: on the running stream, or by starting one (engaged once)."""
         name = self.vehicle.name
-        _, body, yr = twist
+        body, yr = v.body, v.yaw_rate
         if self.stream is not None:
             try:
                 self.stream.velocity_body(*body, yaw_rate=yr)
@@ -222,59 +215,55 @@ class Bridge:
         src: str = "ros2",
         stats: Any = None,
         log: logging.Logger | None = None,
+        reject: Callable[[str, str], None] | None = None,
     ) -> None:
+        """``reject(reason, detail)`` counts and reports an arena sample that is not bridged (a service's
+        :meth:`~arena_common.runtime.service.Service.reject`); by default it is logged and counted in
+        ``stats``."""
         self.cfg = cfg
         self.bus = bus
         self.options = options
         self.log = log or logging.getLogger("arena.ros2")
         self.stats = stats
+        self._reject = reject or self._log_reject
         self.stopping = threading.Event()
         self.vehicles: tuple[str, ...] = options.vehicles or tuple(cfg.vehicles)
         for v in self.vehicles:
             cfg.vehicle(v)  # a ConfigError names the known vehicles
         self.node = Node(bus.session, options.node, domain=options.domain)
-        self.rosout = self.node.publisher("/rosout", types.LOG, names.ROSOUT)
-        self.tf = self.node.publisher("/tf", types.TF_MESSAGE, names.TF)
-        self.tf_static = self.node.publisher("/tf_static", types.TF_MESSAGE, names.TF_STATIC)
-        self.diag = self.node.publisher("/diagnostics", types.DIAGNOSTIC_ARRAY, names.DEFAULT)
-        self.pubs: dict[tuple[str, str], RosPublisher] = {}
-        for v in self.vehicles:
-            self.pubs[v, "pose"] = self.node.publisher(
-                messages.topic(v, "pose"), types.POSE_STAMPED, names.SENSOR_DATA
-            )
-            self.pubs[v, "odom"] = self.node.publisher(
-                messages.topic(v, "odom"), types.ODOMETRY, names.SENSOR_DATA
-            )
-            self.pubs[v, "battery"] = self.node.publisher(
-                messages.topic(v, "battery"), types.BATTERY_STATE, names.DEFAULT
-            )
-        self.tf_static.publish(messages.static_frames(time.time_ns()))
+        #: Every publisher, by its concrete topic name.
+        self.pubs: dict[str, RosPublisher] = {
+            name: self.node.publisher(name, row.msg_type, row.qos)
+            for name, row in topics.endpoints(self.vehicles, Direction.OUT)
+        }
+        self.rosout = self.pubs[topics.ROSOUT]
+        now = time.time_ns()
+        for row in topics.sources().get(None, ()):  # the bridge's own (the arena's static frames)
+            self.pubs[row.topic()].publish(row.convert("", now, options.node))
         self.arena: Arena | None = None
         self.commands: dict[str, _Commands] = {}
         if options.commands:
             self.arena = Arena(cfg, bus=bus, name=src)
             for v in self.vehicles:
                 self.commands[v] = _Commands(self, self.arena.vehicle(v))
-                self.node.subscription(
-                    messages.topic(v, "goto"), types.POSE_STAMPED, self._cmd(v, "goto"), names.DEFAULT
-                )
-                self.node.subscription(
-                    messages.topic(v, "cmd_vel"), types.TWIST, self._cmd(v, "twist"), names.DEFAULT
-                )
+                for row in topics.rows(Direction.IN):  # each a vehicle's own (<d> in its name)
+                    self.node.subscription(row.topic(v), row.msg_type, self._command(v, row), row.qos)
         self._subs = [
-            bus.subscribe(expr, channel=Handler(fn, self._on_error))
-            for expr, fn in (
-                ("arena/*/pose", self._on_pose),
-                ("arena/*/vision", self._on_vision),
-                ("arena/*/state", self._on_state),
-                ("arena/*/events", self._on_event),
-            )
+            bus.subscribe(f"arena/*/{key}", channel=Handler(self._bridge(key, rows), self._on_error))
+            for key, rows in topics.sources().items()
+            if key is not None
         ]
 
-    def _cmd(self, vehicle: str, kind: str) -> Any:
+    def _command(self, vehicle: str, row: Topic) -> Callable[[Any, names.Attachment], None]:
         def handle(msg: Any, _att: names.Attachment) -> None:
             self._count("commands")
-            self.commands[vehicle].put(kind, msg)
+            commands = self.commands[vehicle]
+            try:
+                command = row.convert(msg)
+            except RosInputError as exc:
+                commands.refuse(row.leaf, str(exc))
+                return
+            commands.put(command)
 
         return handle
 
@@ -287,40 +276,34 @@ class Bridge:
         self.log.warning("sample not bridged: %s: %s", type(exc).__name__, exc)
         self._count("errors")
 
-    def _vehicle_of(self, item: Received[Any]) -> str | None:
-        self._count("in")
-        v = keys.parse(item.key).drone
-        return v if v in self.vehicles else None
+    def _log_reject(self, reason: str, detail: str) -> None:
+        self.log.warning("rejected (%s): %s", reason, detail)
+        if self.stats is not None:
+            self.stats.reject(reason)
 
-    def _on_pose(self, item: Received[Any]) -> None:
-        p, v = item.payload, self._vehicle_of(item)
-        if v is None or not isinstance(p, wire.Pose) or not p.ok:
-            return
-        self.pubs[v, "pose"].publish(messages.pose_stamped(p))
-        self.tf.publish(messages.tf(v, p))
-        self._count("out")
+    def _bridge(self, key: str, rows: tuple[Topic, ...]) -> Callable[[Received[Any]], None]:
+        """The handler of ``arena/*/<key>``: each sample of a served vehicle becomes every row's message."""
+        ptype = rows[0].payload
+        assert ptype is not None and all(r.payload is ptype for r in rows), (
+            f"arena/<d>/{key}: one payload type"
+        )
 
-    def _on_vision(self, item: Received[Any]) -> None:
-        p, v = item.payload, self._vehicle_of(item)
-        if v is None or not isinstance(p, wire.Pose) or not p.ok:
-            return
-        self.pubs[v, "odom"].publish(messages.odometry(v, p))
-        self._count("out")
+        def reject(kind: str, detail: str) -> None:
+            self._reject(f"{key}: {kind}", detail)
 
-    def _on_state(self, item: Received[Any]) -> None:
-        s, v = item.payload, self._vehicle_of(item)
-        if v is None or not isinstance(s, wire.State):
-            return
-        self.pubs[v, "battery"].publish(messages.battery(v, s))
-        self.diag.publish(messages.diagnostics(v, s))
-        self._count("out")
+        def handle(item: Received[Any]) -> None:
+            self._count("in")
+            v = keys.parse(item.key).drone
+            if v not in self.vehicles:
+                return
+            payload = typed(item, ptype, reject)
+            if payload is None or not topics.published(payload):
+                return
+            for row in rows:
+                self.pubs[row.topic(v)].publish(row.convert(v, payload, self.options.node))
+            self._count("out")
 
-    def _on_event(self, item: Received[Any]) -> None:
-        e, v = item.payload, self._vehicle_of(item)
-        if v is None or not isinstance(e, wire.Event):
-            return
-        self.rosout.publish(messages.log(v, e, self.options.node))
-        self._count("out")
+        return handle
 
     # -- reports -------------------------------------------------------------------------------------------
     def refuse(self, vehicle: str, what: str, reason: str) -> None:
@@ -337,14 +320,14 @@ class Bridge:
 
     def _rosout(self, level: int, text: str, function: str) -> None:
         try:
-            self.rosout.publish(messages.text_log(time.time_ns(), level, self.options.node, text, function))
+            self.rosout.publish(text_log(time.time_ns(), level, self.options.node, text, function))
         except Exception as exc:  # the session may be closing
             self.log.debug("not on /rosout: %s", exc)
 
     @property
     def publishers(self) -> Sequence[RosPublisher]:
         """Every ROS 2 publisher of the bridge."""
-        return [self.rosout, self.tf, self.tf_static, self.diag, *self.pubs.values()]
+        return list(self.pubs.values())
 
     def close(self) -> None:
         """Stop taking commands (holding any velocity stream), undeclare everything."""

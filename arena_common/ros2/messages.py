@@ -1,50 +1,39 @@
-"""Arena payloads as ROS 2 messages (and ROS 2 commands as arena ones): one pure function each.
+"""Arena payloads as ROS 2 messages, and ROS 2 commands as the arena's: one pure function each.
 
-Topics (``<d>`` is :func:`~arena_common.ros2.names.ros_name` of the vehicle's name):
-
-================================  ==============================  ==============================================
-topic                             type                            from
-================================  ==============================  ==============================================
-``/arena/<d>/pose``               geometry_msgs/msg/PoseStamped   ``arena/<d>/pose`` (full rate), frame ``map``
-``/arena/<d>/odom``               nav_msgs/msg/Odometry           ``arena/<d>/vision``: pose + velocity
-``/tf``                           tf2_msgs/msg/TFMessage          ``arena/<d>/pose``: ``map`` → ``<d>``
-``/tf_static``                    tf2_msgs/msg/TFMessage          the arena's frames: ``map`` → ``arena_ned``
-``/arena/<d>/battery``            sensor_msgs/msg/BatteryState    ``arena/<d>/state``
-``/diagnostics``                  diagnostic_msgs/msg/            ``arena/<d>/state``: link, estimator,
-                                  DiagnosticArray                 failsafes, offboard
-``/rosout``                       rcl_interfaces/msg/Log          ``arena/<d>/events``
-================================  ==============================  ==============================================
+Which topic each one serves, with what QoS and from which key, is the table of
+:mod:`arena_common.ros2.topics`.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 from arena_common.core import wire
+from arena_common.geometry.quat import Vec3, quat_yaw
 from arena_common.ros2 import frames, types
 from arena_common.ros2.names import ros_name
 
 __all__ = [
     "MAP",
     "NED_FRAME",
+    "Goto",
+    "RosInputError",
+    "Velocity",
     "battery",
     "diagnostics",
+    "goto",
     "log",
     "odometry",
     "pose_stamped",
     "static_frames",
     "tf",
-    "topic",
+    "velocity",
 ]
 
 MAP = "map"
 NED_FRAME = "arena_ned"  # the arena's own NED frame, for whoever wants to see it in RViz
-
-
-def topic(vehicle: str, leaf: str) -> str:
-    """``/arena/<d>/<leaf>`` for a vehicle."""
-    return f"/arena/{ros_name(vehicle)}/{leaf}"
 
 
 def _point(v: Any) -> Any:
@@ -215,3 +204,57 @@ def text_log(t_ns: int, level: int, name: str, text: str, function: str = "") ->
     return types.cls(types.LOG)(
         stamp=types.stamp(t_ns), level=level, name=name, msg=text, file="", function=function, line=0
     )
+
+
+# -- ROS 2 → arena ---------------------------------------------------------------------------------------
+
+
+class RosInputError(ValueError):
+    """A ROS 2 message the arena cannot take; its text says why."""
+
+
+@dataclass(frozen=True, slots=True)
+class Goto:
+    """A goto as the gateway's ``goto`` command takes it: position (NED, m), heading (rad, clockwise from
+    north; ``None``: keep the heading)."""
+
+    p: Vec3
+    yaw: float | None
+
+
+@dataclass(frozen=True, slots=True)
+class Velocity:
+    """A body velocity as the offboard stream takes it: FRD (m/s) and yaw rate (rad/s, clockwise)."""
+
+    body: Vec3
+    yaw_rate: float
+
+
+def goto(msg: Any) -> Goto:
+    """geometry_msgs/msg/PoseStamped in ``map`` (ENU; the default when ``frame_id`` is empty) or
+    ``arena_ned`` as a :class:`Goto`; an all-zero orientation keeps the heading."""
+    frame = msg.header.frame_id or MAP
+    pos = (msg.pose.position.x, msg.pose.position.y, msg.pose.position.z)
+    o = msg.pose.orientation
+    q = (o.w, o.x, o.y, o.z)
+    if frame not in (MAP, NED_FRAME):
+        raise RosInputError(f"frame {frame!r} unknown: use {MAP!r} or {NED_FRAME!r}")
+    if not all(math.isfinite(x) for x in (*pos, *q)):
+        raise RosInputError("position or orientation not finite")
+    if frame == MAP:
+        p = frames.enu_to_ned(pos)
+        yaw = None if not any(q) else frames.ros_yaw_to_heading(quat_yaw(q))
+    else:
+        p = (float(pos[0]), float(pos[1]), float(pos[2]))
+        yaw = None if not any(q) else quat_yaw(q)
+    return Goto(p, yaw)
+
+
+def velocity(msg: Any) -> Velocity:
+    """geometry_msgs/msg/Twist in the body, REP 103 FLU (``linear.x`` forward, ``linear.y`` left,
+    ``linear.z`` up, ``angular.z`` counter-clockwise), as the arena's FRD :class:`Velocity`."""
+    body = (float(msg.linear.x), -float(msg.linear.y), -float(msg.linear.z))
+    yaw_rate = -float(msg.angular.z)
+    if not all(math.isfinite(x) for x in (*body, yaw_rate)):
+        raise RosInputError("velocity not finite")
+    return Velocity(body, yaw_rate)

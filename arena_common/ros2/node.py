@@ -189,6 +189,11 @@ class Node:
             self.enclave,
         )
 
+    @property
+    def entities(self) -> tuple[RosPublisher | RosSubscription, ...]:
+        """The node's publishers and subscriptions, in the order they were declared."""
+        return tuple(self._entities)
+
     def _id(self) -> int:
         with self._lock:
             i, self._next_id = self._next_id, self._next_id + 1
