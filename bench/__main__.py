@@ -1,4 +1,7 @@
-"""``make bench`` (``python -m bench``): latency, CPU and memory of the arena against its floors and MAVProxy."""
+"""``make bench`` (``python -m bench``): latency, CPU and memory of the arena against its floors and MAVProxy.
+
+The command line only: what each part measures is said in :mod:`bench.run`.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +9,87 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+
+# -- the options, declared once each -------------------------------------------------------------------------
+
+Part = Annotated[
+    list[str] | None,
+    typer.Option("--part", "-p", help="pipeline, floor, peer or micro (repeatable; default: all)."),
+]
+Vehicles = Annotated[str | None, typer.Option("--vehicles", "-n", help="Vehicle counts (default 1,20).")]
+Rates = Annotated[str | None, typer.Option("--rates", "-r", help="Mocap rates in Hz (default 180).")]
+Floor = Annotated[
+    list[str] | None,
+    typer.Option("--floor", help="Floor transports: zenoh, udp (repeatable; default both)."),
+]
+Duration = Annotated[float | None, typer.Option("--duration", "-d", help="Seconds measured per load point.")]
+Warmup = Annotated[float | None, typer.Option("--warmup", help="Seconds of flow before measuring.")]
+Quick = Annotated[
+    bool,
+    typer.Option("--quick", help="Short runs of 1 and 10 vehicles at 180 Hz (a check, not figures)."),
+]
+Profile = Annotated[
+    bool, typer.Option("--profile", help="py-spy the services during each pipeline measurement.")
+]
+RealisticVision = Annotated[
+    float,
+    typer.Option(
+        "--realistic-vision",
+        help="Vision rate (Hz) of one more point per vehicle count, as deployed (0: skip).",
+    ),
+]
+Overload = Annotated[
+    int | None,
+    typer.Option(
+        "--overload",
+        help="CPU hogs beside the deployed point at the largest load, measured again (default 2; 0: skip).",
+    ),
+]
+PeerRepeats = Annotated[
+    int | None,
+    typer.Option("--peer-repeats", help="Runs of each forwarder in the peer comparison (default 3)."),
+]
+PeerDuration = Annotated[
+    float | None, typer.Option("--peer-duration", help="Seconds per run of each forwarder (default 2.5).")
+]
+Hops = Annotated[
+    bool,
+    typer.Option("--hops", help="Also time each stage of the first vehicle (subscribes to its keys)."),
+]
+Decimate = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--decimate",
+        help="Pipeline configurations: downsampler (chain arena), transform (arena-td); default both.",
+    ),
+]
+VehicleMode = Annotated[
+    str,
+    typer.Option(
+        "--vehicle-mode",
+        help="zenoh.vehicle_mode of the pipeline's config: client, same (default: the config's default).",
+    ),
+]
+Fleet = Annotated[
+    int | None,
+    typer.Option(
+        "--fleet",
+        help="Vehicles of the fleet point (deployed vision, every configuration; default 50 unless "
+        "--vehicles is given, 0: skip).",
+    ),
+]
+Out = Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")]
+Docs = Annotated[
+    bool | None,
+    typer.Option(
+        "--docs/--no-docs", help="Write the tables into docs/performance.md (default: full runs only)."
+    ),
+]
+DocsFile = Annotated[Path, typer.Option("--docs-file", help="The document to update.")]
+Rerender = Annotated[
+    Path | None,
+    typer.Option("--from", help="Re-render the tables (and docs, unless --no-docs) from a stored result."),
+]
 
 
 def _numbers(text: str, what: str, kind: type = float) -> tuple[Any, ...]:
@@ -19,98 +103,26 @@ def _numbers(text: str, what: str, kind: type = float) -> tuple[Any, ...]:
 
 
 def bench(
-    part: Annotated[
-        list[str] | None,
-        typer.Option("--part", "-p", help="pipeline, floor, peer or micro (repeatable; default: all)."),
-    ] = None,
-    vehicles: Annotated[
-        str | None, typer.Option("--vehicles", "-n", help="Vehicle counts (default 1,20).")
-    ] = None,
-    rates: Annotated[
-        str | None, typer.Option("--rates", "-r", help="Mocap rates in Hz (default 180).")
-    ] = None,
-    floor: Annotated[
-        list[str] | None,
-        typer.Option("--floor", help="Floor transports: zenoh, udp (repeatable; default both)."),
-    ] = None,
-    duration: Annotated[
-        float | None, typer.Option("--duration", "-d", help="Seconds measured per load point.")
-    ] = None,
-    warmup: Annotated[
-        float | None, typer.Option("--warmup", help="Seconds of flow before measuring.")
-    ] = None,
-    quick: Annotated[
-        bool,
-        typer.Option("--quick", help="Short runs of 1 and 10 vehicles at 180 Hz (a check, not figures)."),
-    ] = False,
-    profile: Annotated[
-        bool, typer.Option("--profile", help="py-spy the services during each pipeline measurement.")
-    ] = False,
-    realistic_vision: Annotated[
-        float,
-        typer.Option(
-            "--realistic-vision",
-            help="Vision rate (Hz) of one more point per vehicle count, as deployed (0: skip).",
-        ),
-    ] = 50.0,
-    overload: Annotated[
-        int | None,
-        typer.Option(
-            "--overload",
-            help="CPU hogs beside the deployed point at the largest load, measured again (default 2; 0: skip).",
-        ),
-    ] = None,
-    peer_repeats: Annotated[
-        int | None,
-        typer.Option("--peer-repeats", help="Runs of each forwarder in the peer comparison (default 3)."),
-    ] = None,
-    peer_duration: Annotated[
-        float | None, typer.Option("--peer-duration", help="Seconds per run of each forwarder (default 2.5).")
-    ] = None,
-    hops: Annotated[
-        bool,
-        typer.Option("--hops", help="Also time each stage of the first vehicle (subscribes to its keys)."),
-    ] = False,
-    decimate: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--decimate",
-            help="Pipeline configurations: downsampler (chain arena), transform (arena-td); default both.",
-        ),
-    ] = None,
-    vehicle_mode: Annotated[
-        str,
-        typer.Option(
-            "--vehicle-mode",
-            help="zenoh.vehicle_mode of the pipeline's config: client, same (default: the config's default).",
-        ),
-    ] = "",
-    fleet: Annotated[
-        int | None,
-        typer.Option(
-            "--fleet",
-            help="Vehicles of the fleet point (deployed vision, every configuration; default 50 unless "
-            "--vehicles is given, 0: skip).",
-        ),
-    ] = None,
-    out: Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")] = Path(
-        "bench-results"
-    ),
-    docs: Annotated[
-        bool | None,
-        typer.Option(
-            "--docs/--no-docs", help="Write the tables into docs/performance.md (default: full runs only)."
-        ),
-    ] = None,
-    docs_file: Annotated[Path, typer.Option("--docs-file", help="The document to update.")] = Path(
-        "docs/performance.md"
-    ),
-    rerender: Annotated[
-        Path | None,
-        typer.Option(
-            "--from", help="Re-render the tables (and docs, unless --no-docs) from a stored result."
-        ),
-    ] = None,
+    part: Part = None,
+    vehicles: Vehicles = None,
+    rates: Rates = None,
+    floor: Floor = None,
+    duration: Duration = None,
+    warmup: Warmup = None,
+    quick: Quick = False,
+    profile: Profile = False,
+    realistic_vision: RealisticVision = 50.0,
+    overload: Overload = None,
+    peer_repeats: PeerRepeats = None,
+    peer_duration: PeerDuration = None,
+    hops: Hops = False,
+    decimate: Decimate = None,
+    vehicle_mode: VehicleMode = "",
+    fleet: Fleet = None,
+    out: Out = Path("bench-results"),
+    docs: Docs = None,
+    docs_file: DocsFile = Path("docs/performance.md"),
+    rerender: Rerender = None,
 ) -> None:
     """Measure the arena: end-to-end latency, loss, vision rate, CPU and memory at 1 and 20 vehicles × 180 Hz
     (as deployed and overloaded too) and a fleet of 50 as deployed, beside a bare Zenoh and a UDP chain of
@@ -142,16 +154,14 @@ def bench(
         changes["fleet"] = fleet
     elif vehicles is not None:  # `-n 1` asks for one vehicle: the fleet of 50 only when asked for too
         changes["fleet"] = 0
-    if duration is not None:
-        changes["duration"] = duration
-    if warmup is not None:
-        changes["warmup"] = warmup
-    if overload is not None:
-        changes["overload"] = overload
-    if peer_repeats is not None:
-        changes["peer_repeats"] = peer_repeats
-    if peer_duration is not None:
-        changes["peer_duration"] = peer_duration
+    given = {
+        "duration": duration,
+        "warmup": warmup,
+        "overload": overload,
+        "peer_repeats": peer_repeats,
+        "peer_duration": peer_duration,
+    }
+    changes.update({k: v for k, v in given.items() if v is not None})
     write_docs = (not quick) if docs is None else docs
     changes["docs"] = docs_file if write_docs else None
     options = bench_mod.BenchOptions.quick_options(**changes) if quick else bench_mod.BenchOptions(**changes)

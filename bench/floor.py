@@ -156,6 +156,21 @@ def run_relay(
     frames, evenly (:func:`kept`): a decimator's place.
     """
     out = _Output(target, connect, size)
+    forward, sent = _forwarder(out, fanout, keep)
+    kind, _, rest = source.partition(":")
+    if kind in ("udp", "mcast"):
+        _relay_datagrams(kind, rest, forward, stop)
+    elif kind == "zenoh":
+        _relay_zenoh(rest, out, connect, inline, forward, stop)
+    else:
+        raise SystemExit(f"unknown input {source!r}: mcast:GROUP:PORT, udp:PORT or zenoh:KEYEXPR")
+    if out.session is not None:
+        out.session.close()
+    return sent()
+
+
+def _forwarder(out: _Output, fanout: int, keep: float) -> tuple[Callable[[bytes], None], Callable[[], int]]:
+    """What a relay does with each message (see :func:`run_relay`), and how many it has sent so far."""
     sent = 0
 
     def forward(data: bytes) -> None:
@@ -177,48 +192,56 @@ def run_relay(
             out.send(0, data)
             sent += 1
 
-    kind, _, rest = source.partition(":")
-    if kind in ("udp", "mcast"):
-        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-        if kind == "mcast":
-            group, port = rest.rsplit(":", 1)
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            s.bind((group, int(port)))
-            mreq = socket.inet_aton(group) + socket.inet_aton("127.0.0.1")
-            s.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
-        else:
-            s.bind(("127.0.0.1", int(rest)))
-        s.settimeout(0.2)
+    return forward, lambda: sent
+
+
+def _relay_datagrams(kind: str, rest: str, forward: Callable[[bytes], None], stop: threading.Event) -> None:
+    """Datagrams from a UDP port (``udp``: ``PORT``) or a multicast group (``mcast``: ``GROUP:PORT``)."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+    if kind == "mcast":
+        group, port = rest.rsplit(":", 1)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind((group, int(port)))
+        mreq = socket.inet_aton(group) + socket.inet_aton("127.0.0.1")
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, mreq)
+    else:
+        s.bind(("127.0.0.1", int(rest)))
+    s.settimeout(0.2)
+    while not stop.is_set():
+        try:
+            data = s.recv(65536)
+        except TimeoutError:
+            continue
+        forward(data)
+    s.close()
+
+
+def _relay_zenoh(
+    keyexpr: str,
+    out: _Output,
+    connect: Sequence[str],
+    inline: bool,
+    forward: Callable[[bytes], None],
+    stop: threading.Event,
+) -> None:
+    """Samples on ``keyexpr``: forwarded inside Zenoh's callback (``inline``) or from a queue by this thread."""
+    session = out.session or _zenoh_session(connect)
+    if inline:
+        sub = session.declare_subscriber(keyexpr, lambda sample: forward(sample.payload.to_bytes()))
+        stop.wait()
+    else:
+        q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        sub = session.declare_subscriber(keyexpr, lambda sample: q.put(sample.payload.to_bytes()))
         while not stop.is_set():
             try:
-                data = s.recv(65536)
-            except TimeoutError:
+                data = q.get(timeout=0.2)
+            except queue.Empty:
                 continue
             forward(data)
-        s.close()
-    elif kind == "zenoh":
-        session = out.session or _zenoh_session(connect)
-        if inline:
-            sub = session.declare_subscriber(rest, lambda sample: forward(sample.payload.to_bytes()))
-            stop.wait()
-        else:
-            q: queue.SimpleQueue[bytes] = queue.SimpleQueue()
-            sub = session.declare_subscriber(rest, lambda sample: q.put(sample.payload.to_bytes()))
-            while not stop.is_set():
-                try:
-                    data = q.get(timeout=0.2)
-                except queue.Empty:
-                    continue
-                forward(data)
-        sub.undeclare()
-        if session is not out.session:
-            session.close()
-    else:
-        raise SystemExit(f"unknown input {source!r}: mcast:GROUP:PORT, udp:PORT or zenoh:KEYEXPR")
-    if out.session is not None:
-        out.session.close()
-    return sent
+    sub.undeclare()
+    if session is not out.session:
+        session.close()
 
 
 def main(argv: Sequence[str] | None = None) -> None:

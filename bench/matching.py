@@ -17,7 +17,7 @@ import math
 import struct
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import msgpack
@@ -216,84 +216,34 @@ def analyze_arena(
     rate is above the mocap rate); ``lost`` is how many fewer poses arrived (a pose the decimator took in
     place of a lost neighbour counts as delivered), ``designed_drops`` the frames it skips by design.
     """
-    period = 1e9 / rate
     latencies: list[int] = []
-    expected = delivered = mismatched = duplicates = unmatched_time = designed = substituted = 0
     residuals: list[int] = []
     per_vehicle: dict[int, dict[str, int]] = {}
     first_vehicle: list[tuple[int, int, int]] = []  # (frame number, frame stamp, ODOMETRY stamp) of vehicle 0
     in_window_idx = [k for k, f in enumerate(frames) if t0 <= f.stamp <= t1]
     for v, records in outputs.items():
-        index: dict[tuple[float, float, float], list[int]] = collections.defaultdict(list)
-        for k, f in enumerate(frames):
-            p = f.positions.get(v)
-            if p is not None:
-                index[p].append(k)
-        odos = [(stamp, od) for stamp, data in records if (od := odometry_of(data)) is not None]
-        # The clock offset: the mode of time_usec·1000 − mid over every candidate frame of every output.
-        diffs: list[int] = []
-        for _, (usec, p) in odos[:3000]:
-            for k in index.get(p, ()):
-                diffs.append(usec * 1000 - frames[k].mid_ns)
-        if not diffs:
-            offset = 0
-        else:
-            bins = collections.Counter(d // 20_000 for d in diffs)
-            mode = bins.most_common(1)[0][0] * 20_000 + 10_000
-            near = sorted(d for d in diffs if abs(d - mode) <= 100_000)
-            offset = near[len(near) // 2]
-        matched: set[int] = set()
-        first_out: int | None = None
-        v_lat: list[int] = []
-        v_mis = v_dup = v_time = 0
-        for stamp, (usec, p) in odos:
-            cands = index.get(p)
-            if not cands:
-                v_mis += 1
-                continue
-            best = min(cands, key=lambda k: abs(usec * 1000 - frames[k].mid_ns - offset))
-            resid = usec * 1000 - frames[best].mid_ns - offset
-            if abs(resid) > period / 3:
-                v_time += 1
-                continue
-            if first_out is None or best < first_out:
-                first_out = best
-            f = frames[best]
-            if not t0 <= f.stamp <= t1:
-                continue
-            if best in matched:
-                v_dup += 1
-                continue
-            matched.add(best)
-            residuals.append(resid)
-            v_lat.append(stamp - f.stamp)
-            if v == 0:
-                first_vehicle.append((f.fn, f.stamp, stamp))
+        m = _match_vehicle(frames, v, records, t0, t1, 1e9 / rate)
         tracked = {k for k in in_window_idx if frames[k].positions.get(v) is not None}
         # The decimator starts on the first pose it gets (the first one sent); when nothing came out
         # before the window (a starved pipeline), assume it started with the window.
         anchor = min(tracked, default=None)
-        if first_out is not None and (anchor is None or first_out < anchor):
-            anchor = first_out
+        if m.first_out is not None and (anchor is None or m.first_out < anchor):
+            anchor = m.first_out
         wanted = designed_outputs(frames, v, anchor, vision_rate) & tracked if anchor is not None else set()
-        v_expected = len(wanted)
         per_vehicle[v] = {
-            "expected": v_expected,
-            "delivered": len(matched),
-            "designed_drops": len(tracked) - v_expected,
-            "substituted": len(matched - wanted),
-            "mismatched": v_mis,
-            "unmatched_time": v_time,
-            "duplicates": v_dup,
+            "expected": len(wanted),
+            "delivered": len(m.matched),
+            "designed_drops": len(tracked) - len(wanted),
+            "substituted": len(m.matched - wanted),
+            "mismatched": m.mismatched,
+            "unmatched_time": m.unmatched_time,
+            "duplicates": m.duplicates,
         }
-        latencies += v_lat
-        expected += v_expected
-        delivered += len(matched)
-        designed += len(tracked) - v_expected
-        substituted += len(matched - wanted)
-        mismatched += v_mis
-        duplicates += v_dup
-        unmatched_time += v_time
+        latencies += m.latencies
+        residuals += m.residuals
+        if v == 0:
+            first_vehicle += m.stamps
+    total = {k: sum(c[k] for c in per_vehicle.values()) for k in _COUNTS}
     in_window = [frames[k] for k in in_window_idx]
     gaps = 0
     for a, b in itertools.pairwise(in_window):
@@ -302,20 +252,105 @@ def analyze_arena(
     res_abs = sorted(abs(r) for r in residuals)
     return {
         "latencies": latencies,
-        "expected": expected,
-        "delivered": delivered,
-        "lost": max(0, expected - delivered),
-        "designed_drops": designed,
-        "substituted": substituted,
-        "mismatched": mismatched,
-        "duplicates": duplicates,
-        "unmatched_time": unmatched_time,
+        "expected": total["expected"],
+        "delivered": total["delivered"],
+        "lost": max(0, total["expected"] - total["delivered"]),
+        "designed_drops": total["designed_drops"],
+        "substituted": total["substituted"],
+        "mismatched": total["mismatched"],
+        "duplicates": total["duplicates"],
+        "unmatched_time": total["unmatched_time"],
         "frames": len(in_window),
         "frame_gaps": gaps,
         "clock_residual_us_p99": (res_abs[int(0.99 * (len(res_abs) - 1))] / 1e3) if res_abs else math.nan,
         "per_vehicle": per_vehicle,
         "first_vehicle": first_vehicle,
     }
+
+
+_COUNTS = (
+    "expected",
+    "delivered",
+    "designed_drops",
+    "substituted",
+    "mismatched",
+    "duplicates",
+    "unmatched_time",
+)
+
+
+@dataclass
+class _VehicleMatch:
+    """One vehicle's ODOMETRY matched to the frames: what was delivered in the window, and what was not."""
+
+    matched: set[int] = field(default_factory=set)  # indices of the window's frames delivered
+    first_out: int | None = None  # index of the earliest frame delivered, in the window or not
+    latencies: list[int] = field(default_factory=list)  # ns, frame arrival → ODOMETRY arrival
+    residuals: list[int] = field(default_factory=list)  # ns, time_usec off the clock offset
+    stamps: list[tuple[int, int, int]] = field(default_factory=list)  # (frame number, frame stamp, its stamp)
+    mismatched: int = 0  # a position no frame had
+    duplicates: int = 0  # a frame delivered twice
+    unmatched_time: int = 0  # the position of a frame, but not its time
+
+
+def _match_vehicle(
+    frames: Sequence[_FrameInfo],
+    v: int,
+    records: Sequence[tuple[int, bytes]],
+    t0: int,
+    t1: int,
+    period: float,
+) -> _VehicleMatch:
+    """Each ODOMETRY of vehicle ``v`` assigned the frame with its position nearest in time (module doc)."""
+    index: dict[tuple[float, float, float], list[int]] = collections.defaultdict(list)
+    for k, f in enumerate(frames):
+        p = f.positions.get(v)
+        if p is not None:
+            index[p].append(k)
+    odos = [(stamp, od) for stamp, data in records if (od := odometry_of(data)) is not None]
+    offset = _clock_offset(frames, index, odos)
+    m = _VehicleMatch()
+    for stamp, (usec, p) in odos:
+        cands = index.get(p)
+        if not cands:
+            m.mismatched += 1
+            continue
+        best = min(cands, key=lambda k: abs(usec * 1000 - frames[k].mid_ns - offset))
+        resid = usec * 1000 - frames[best].mid_ns - offset
+        if abs(resid) > period / 3:
+            m.unmatched_time += 1
+            continue
+        if m.first_out is None or best < m.first_out:
+            m.first_out = best
+        f = frames[best]
+        if not t0 <= f.stamp <= t1:
+            continue
+        if best in m.matched:
+            m.duplicates += 1
+            continue
+        m.matched.add(best)
+        m.residuals.append(resid)
+        m.latencies.append(stamp - f.stamp)
+        m.stamps.append((f.fn, f.stamp, stamp))
+    return m
+
+
+def _clock_offset(
+    frames: Sequence[_FrameInfo],
+    index: Mapping[tuple[float, float, float], list[int]],
+    odos: Sequence[tuple[int, tuple[int, tuple[float, float, float]]]],
+) -> int:
+    """The clock offset (ns): the mode of time_usec·1000 − mid over every candidate frame of every output."""
+    diffs: list[int] = []
+    for _, (usec, p) in odos[:3000]:
+        for k in index.get(p, ()):
+            diffs.append(usec * 1000 - frames[k].mid_ns)
+    if not diffs:
+        return 0
+    bins = collections.Counter(d // 20_000 for d in diffs)
+    mode = bins.most_common(1)[0][0] * 20_000 + 10_000
+    near = sorted(d for d in diffs if abs(d - mode) <= 100_000)
+    return near[len(near) // 2]
 
 
 def hop_breakdown(

@@ -180,76 +180,11 @@ def _start(
     """Start every forwarder; those that cannot run are returned apart with the reason."""
     fwds: dict[str, _Forwarder] = {}
     unavailable: dict[str, str] = {}
-    common = ["--host", HOST]
-
-    def gateway() -> _Forwarder:
-        procs, bus, child = _zenoh_arena(
-            "gateway",
-            settings,
-            ports["gateway"],
-            lambda p: python_module(
-                "services.mavlink_gateway", "-c", str(p), *common, "--log-level", "WARNING", "--vehicle", "d1"
-            ),
-            "gateway",
-        )
-        buses.append(bus)
-        return _Forwarder("gateway", procs, child.pid, _pose_sender(bus))
-
-    def floor_zenoh() -> _Forwarder:
-        out = str(ports["floor-zenoh"])
-        procs, bus, child = _zenoh_arena(
-            "floor-zenoh",
-            settings,
-            ports["floor-zenoh"],
-            lambda p: python_module("bench.forwarders", "zenoh", "-c", str(p), *common, "--out", out),
-            "floor",
-        )
-        buses.append(bus)
-        return _Forwarder("floor-zenoh", procs, child.pid, _pose_sender(bus))
-
-    def floor_udp() -> _Forwarder:
-        procs = ProcessSet(settings.logs / "peer" / "floor-udp", env=_env(settings.repo))
-        listen = free_port()
-        child = procs.spawn(
-            "floor-udp",
-            "floor",
-            python_module(
-                "bench.forwarders", "udp", "--listen", str(listen), "--out", str(ports["floor-udp"])
-            ),
-            settings.repo,
-        )
-        return _Forwarder("floor-udp", procs, child.pid, _frame_sender(tx, listen))
-
-    def mavproxy() -> _Forwarder:
-        command = mavproxy_command()
-        if command is None:
-            raise BenchError("mavproxy.py is not installed (pip install mavproxy)")
-        workdir = settings.logs / "peer" / "mavproxy"
-        workdir.mkdir(parents=True, exist_ok=True)
-        procs = ProcessSet(workdir, env={**_env(settings.repo), "MAVLINK20": "1"})
-        master = free_port()
-        child = procs.spawn(
-            "mavproxy",
-            "mavproxy",
-            [
-                sys.executable,
-                command,
-                f"--master=udpin:127.0.0.1:{master}",
-                f"--out=udpout:127.0.0.1:{ports['mavproxy']}",
-                "--daemon",
-                "--non-interactive",
-                "--nowait",
-                "--no-state",
-            ],
-            workdir,
-        )
-        return _Forwarder("mavproxy", procs, child.pid, _frame_sender(tx, master))
-
     starters: dict[str, Callable[[], _Forwarder]] = {
-        "gateway": gateway,
-        "floor-zenoh": floor_zenoh,
-        "floor-udp": floor_udp,
-        "mavproxy": mavproxy,
+        "gateway": lambda: _start_gateway(settings, ports["gateway"], buses),
+        "floor-zenoh": lambda: _start_floor_zenoh(settings, ports["floor-zenoh"], buses),
+        "floor-udp": lambda: _start_floor_udp(settings, ports["floor-udp"], tx),
+        "mavproxy": lambda: _start_mavproxy(settings, ports["mavproxy"], tx),
     }
     for name, start in starters.items():
         try:
@@ -257,6 +192,83 @@ def _start(
         except (BenchError, ArenaError) as exc:
             unavailable[name] = str(exc)
     return fwds, unavailable
+
+
+def _start_gateway(settings: RunSettings, port: int, buses: list[Bus]) -> _Forwarder:
+    """The arena's gateway for one vehicle, in an arena of its own, fed vision poses over Zenoh."""
+    procs, bus, child = _zenoh_arena(
+        "gateway",
+        settings,
+        port,
+        lambda p: python_module(
+            "services.mavlink_gateway",
+            "-c",
+            str(p),
+            "--host",
+            HOST,
+            "--log-level",
+            "WARNING",
+            "--vehicle",
+            "d1",
+        ),
+        "gateway",
+    )
+    buses.append(bus)
+    return _Forwarder("gateway", procs, child.pid, _pose_sender(bus))
+
+
+def _start_floor_zenoh(settings: RunSettings, port: int, buses: list[Bus]) -> _Forwarder:
+    """The Zenoh forwarder of :mod:`bench.forwarders`, in an arena of its own, fed vision poses."""
+    out = str(port)
+    procs, bus, child = _zenoh_arena(
+        "floor-zenoh",
+        settings,
+        port,
+        lambda p: python_module("bench.forwarders", "zenoh", "-c", str(p), "--host", HOST, "--out", out),
+        "floor",
+    )
+    buses.append(bus)
+    return _Forwarder("floor-zenoh", procs, child.pid, _pose_sender(bus))
+
+
+def _start_floor_udp(settings: RunSettings, port: int, tx: socket.socket) -> _Forwarder:
+    """The UDP forwarder of :mod:`bench.forwarders`, fed ready-made ODOMETRY frames from ``tx``."""
+    procs = ProcessSet(settings.logs / "peer" / "floor-udp", env=_env(settings.repo))
+    listen = free_port()
+    child = procs.spawn(
+        "floor-udp",
+        "floor",
+        python_module("bench.forwarders", "udp", "--listen", str(listen), "--out", str(port)),
+        settings.repo,
+    )
+    return _Forwarder("floor-udp", procs, child.pid, _frame_sender(tx, listen))
+
+
+def _start_mavproxy(settings: RunSettings, port: int, tx: socket.socket) -> _Forwarder:
+    """MAVProxy as users run it, fed ready-made ODOMETRY frames from ``tx``."""
+    command = mavproxy_command()
+    if command is None:
+        raise BenchError("mavproxy.py is not installed (pip install mavproxy)")
+    workdir = settings.logs / "peer" / "mavproxy"
+    workdir.mkdir(parents=True, exist_ok=True)
+    procs = ProcessSet(workdir, env={**_env(settings.repo), "MAVLINK20": "1"})
+    master = free_port()
+    child = procs.spawn(
+        "mavproxy",
+        "mavproxy",
+        [
+            sys.executable,
+            command,
+            f"--master=udpin:127.0.0.1:{master}",
+            f"--out=udpout:127.0.0.1:{port}",
+            "--daemon",
+            "--non-interactive",
+            "--nowait",
+            "--no-state",
+        ],
+        workdir,
+    )
+    return _Forwarder("mavproxy", procs, child.pid, _frame_sender(tx, master))
 
 
 def _wait_flowing(fwd: _Forwarder, collector: Collector, timeout: float) -> None:
@@ -378,50 +390,14 @@ def run_peers(
     try:
         collector.start()
         fwds, unavailable = _start(settings, ports, tx, buses)
-        for name, fwd in list(fwds.items()):
-            try:
-                _wait_flowing(fwd, collector, settings.start_timeout)
-            except BenchError as exc:
-                unavailable[name] = str(exc)
-                fwd.procs.stop()
-                del fwds[name]
+        _drop_silent(fwds, unavailable, collector, settings.start_timeout)
         time.sleep(0.5)
         order = [n for n in FORWARDERS if n in fwds]
         out["order"] = order
-        for rnd in range(repeats):
-            live = {n: f for n, f in fwds.items() if not f.error}
-            idle = _idle_rates(live, settings.idle)
-            for name in order if rnd % 2 == 0 else order[::-1]:
-                fwd = fwds[name]
-                if fwd.error:
-                    continue
-                try:
-                    fwd.runs.append(
-                        _window(fwd, collector, rate, settings.duration, idle[name], settings.drain)
-                    )
-                except BenchError as exc:
-                    fwd.error = str(exc)
-        out["sweep"] = {name: {} for name in order}
-        for r in sweep:
-            for name in order:
-                fwd = fwds[name]
-                if fwd.error:
-                    continue
-                try:
-                    fig = _window(fwd, collector, r, SWEEP_SECONDS, idle[name], settings.drain)
-                except BenchError as exc:
-                    fig = {"unavailable": str(exc)}
-                out["sweep"][name][f"{r:g}"] = fig
+        idle = _rounds(fwds, order, collector, rate, settings, repeats)
+        out["sweep"] = _sweep(fwds, order, collector, sweep, idle, settings.drain)
         for name in FORWARDERS:
-            fwd_or_none = fwds.get(name)
-            if fwd_or_none is None:
-                out[name] = {"unavailable": unavailable.get(name, "not started")}
-            elif not fwd_or_none.runs:
-                out[name] = {"unavailable": fwd_or_none.error or "no run"}
-            else:
-                out[name] = summarise(fwd_or_none.runs)
-                if fwd_or_none.error:
-                    out[name]["error"] = fwd_or_none.error
+            out[name] = _summary(fwds.get(name), unavailable.get(name, "not started"))
     finally:
         for fwd in fwds.values():
             fwd.procs.stop()
@@ -429,7 +405,86 @@ def run_peers(
             bus.close()
         tx.close()
         collector.close()
-    g, m, fz = out["gateway"], out["mavproxy"], out["floor-zenoh"]
+    out.update(_ratios(out["gateway"], out["mavproxy"], out["floor-zenoh"]))
+    return out
+
+
+def _drop_silent(
+    fwds: dict[str, _Forwarder], unavailable: dict[str, str], collector: Collector, timeout: float
+) -> None:
+    """Every forwarder that sends no ODOMETRY within ``timeout`` stopped and moved to ``unavailable``."""
+    for name, fwd in list(fwds.items()):
+        try:
+            _wait_flowing(fwd, collector, timeout)
+        except BenchError as exc:
+            unavailable[name] = str(exc)
+            fwd.procs.stop()
+            del fwds[name]
+
+
+def _rounds(
+    fwds: dict[str, _Forwarder],
+    order: list[str],
+    collector: Collector,
+    rate: float,
+    settings: RunSettings,
+    repeats: int,
+) -> dict[str, float]:
+    """``repeats`` rounds, each an idle window then one run of each forwarder, the order reversed every other
+    round; a forwarder that fails keeps its error and runs no more.  Returns the last round's idle rates."""
+    idle: dict[str, float] = {}
+    for rnd in range(repeats):
+        live = {n: f for n, f in fwds.items() if not f.error}
+        idle = _idle_rates(live, settings.idle)
+        for name in order if rnd % 2 == 0 else order[::-1]:
+            fwd = fwds[name]
+            if fwd.error:
+                continue
+            try:
+                fwd.runs.append(_window(fwd, collector, rate, settings.duration, idle[name], settings.drain))
+            except BenchError as exc:
+                fwd.error = str(exc)
+    return idle
+
+
+def _sweep(
+    fwds: dict[str, _Forwarder],
+    order: list[str],
+    collector: Collector,
+    rates: tuple[float, ...],
+    idle: dict[str, float],
+    drain: float,
+) -> dict[str, dict[str, Any]]:
+    """One short run of each forwarder still without error at every rate: ``[name][f"{rate:g}"]``."""
+    out: dict[str, dict[str, Any]] = {name: {} for name in order}
+    for r in rates:
+        for name in order:
+            fwd = fwds[name]
+            if fwd.error:
+                continue
+            try:
+                fig = _window(fwd, collector, r, SWEEP_SECONDS, idle[name], drain)
+            except BenchError as exc:
+                fig = {"unavailable": str(exc)}
+            out[name][f"{r:g}"] = fig
+    return out
+
+
+def _summary(fwd: _Forwarder | None, why_not: str) -> dict[str, Any]:
+    """A forwarder's summary of its runs (:func:`summarise`), or why it has none."""
+    if fwd is None:
+        return {"unavailable": why_not}
+    if not fwd.runs:
+        return {"unavailable": fwd.error or "no run"}
+    summary = summarise(fwd.runs)
+    if fwd.error:
+        summary["error"] = fwd.error
+    return summary
+
+
+def _ratios(g: dict[str, Any], m: dict[str, Any], fz: dict[str, Any]) -> dict[str, Any]:
+    """The gateway's cost per message against MAVProxy's and its Zenoh floor's, the floor's against MAVProxy's."""
+    out: dict[str, Any] = {}
     if "unavailable" not in g and "unavailable" not in m:
         out["cpu_ratio"] = _ratio(g, m, "cpu_us_per_msg")
         out["marginal_cpu_ratio"] = _ratio(g, m, "marginal_cpu_us_per_msg")

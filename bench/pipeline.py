@@ -36,6 +36,7 @@ from arena_common.core.config import load as load_config
 from arena_common.mocap import natnet
 from bench.feeds import StatsWatcher, TruthFeeder
 from bench.harness import (
+    Child,
     Collector,
     ProcessSet,
     free_port,
@@ -318,114 +319,160 @@ def run_arena(
     decimators start at ``realistic_vision`` and only the deployed (and overloaded) points run, the idle
     figures and the start-up with the first of them (the fleet point).
     """
-    from arena_common.pipeline.transform import frame_transform
-    from arena_common.sim.natnet_scene import rigid_bodies
-    from arena_common.sim.natnet_server import TICK_FREQUENCY
+    run = _ArenaRun(n, rates[0], settings, decimate, on_point)
+    try:
+        deployed_rate = realistic_vision if deployed_only else None  # the decimators start as deployed
+        run.start(deployed_rate or VISION_RATE)
+        idle = run.idle()
+        for rate in rates if deployed_rate is None else ():
+            run.measure(rate, run.chain_name, VISION_RATE, idle)
+            idle = {}
+        if realistic_vision is not None:
+            if deployed_rate is None:
+                run.restart_decimators(realistic_vision)
+            deployed = f"{run.chain_name}-v{realistic_vision:g}"
+            run.measure(rates[0], deployed, realistic_vision, idle)
+            if overload > 0:
+                run.measure(rates[0], f"{deployed}-loaded", realistic_vision, {}, hogs=overload)
+    finally:
+        run.close()
+    return run.results
 
-    chain_name = CHAINS[decimate]
-    workdir = settings.logs / f"{chain_name}-{n}"
-    socks, ports = _vehicle_sockets(n)
-    path = write_config(workdir, n, rates[0], ports, decimate=decimate, vehicle_mode=settings.vehicle_mode)
-    cfg = load_config(path)
-    socks["frames"] = stamped_socket(cfg.mocap.data_port, group=cfg.mocap.group)
-    names = list(cfg.vehicles)
-    body_to_vehicle = {body_id: names.index(vehicle) for vehicle, _, body_id in rigid_bodies(cfg)}
-    transform = frame_transform(cfg)
-    version = natnet.Version.parse(NATNET_VERSION)
-    common = ["-c", str(path), "--host", HOST, "--log-level", "WARNING"]
-    results: list[PointResult] = []
-    procs = ProcessSet(workdir, env=_env(settings.repo))
-    collector = Collector(socks)
-    bus: Bus | None = None
-    feeder: TruthFeeder | None = None
-    watcher: StatsWatcher | None = None
-    hop_watcher: HopWatcher | None = None
 
-    def decimators(vision_rate: float) -> None:
-        if decimate == "transform":
-            conf = path
+class _ArenaRun:
+    """One process set of :func:`run_arena`: its config, its processes, the harness's sockets and session,
+    and the points measured on it, in order."""
+
+    def __init__(
+        self,
+        n: int,
+        rate: float,
+        settings: RunSettings,
+        decimate: str,
+        on_point: Callable[[PointResult], None] | None,
+    ) -> None:
+        from arena_common.pipeline.transform import frame_transform
+        from arena_common.sim.natnet_scene import rigid_bodies
+        from arena_common.sim.natnet_server import TICK_FREQUENCY
+
+        self.tick_frequency = TICK_FREQUENCY
+        self.n, self.settings, self.decimate, self.on_point = n, settings, decimate, on_point
+        self.chain_name = CHAINS[decimate]
+        workdir = settings.logs / f"{self.chain_name}-{n}"
+        socks, ports = _vehicle_sockets(n)
+        self.path = write_config(
+            workdir, n, rate, ports, decimate=decimate, vehicle_mode=settings.vehicle_mode
+        )
+        self.cfg = load_config(self.path)
+        socks["frames"] = stamped_socket(self.cfg.mocap.data_port, group=self.cfg.mocap.group)
+        self.names = list(self.cfg.vehicles)
+        self.body_to_vehicle = {body_id: self.names.index(v) for v, _, body_id in rigid_bodies(self.cfg)}
+        self.transform = frame_transform(self.cfg)
+        self.version = natnet.Version.parse(NATNET_VERSION)
+        self.common = ["-c", str(self.path), "--host", HOST, "--log-level", "WARNING"]
+        self.results: list[PointResult] = []
+        self.procs = ProcessSet(workdir, env=_env(settings.repo))
+        self.collector = Collector(socks)
+        self.bus: Bus | None = None
+        self.feeder: TruthFeeder | None = None
+        self.watcher: StatsWatcher | None = None
+        self.hop_watcher: HopWatcher | None = None
+        # s to every service alive ("services") and to vision from every gateway ("vision"): PointResult's
+        self.startup: dict[str, float] = {}
+
+    def _spawn(self, name: str, role: str, module: str, *args: str) -> Child:
+        return self.procs.spawn(name, role, python_module(module, *args), self.settings.repo)
+
+    def start(self, vision_rate: float) -> None:
+        """The router, the harness's session and feeds, the decimators at ``vision_rate``, the transform and
+        the gateways; returns once every service is alive."""
+        self.collector.start()
+        t_start = time.monotonic()
+        self._spawn("router", "router", "arena_common.cli", "router", "-c", str(self.path), "--host", HOST)
+        wait_port(router_port(self.cfg), 30, "the Zenoh router", self.procs)
+        self.bus = open_bus(self.cfg.zenoh)
+        self.feeder = TruthFeeder(self.bus, self.names).start()
+        self.watcher = StatsWatcher(self.bus)
+        if self.settings.hops:
+            self.hop_watcher = HopWatcher(self.bus, self.names[0])
+        self._decimators(vision_rate)
+        if self.decimate == "downsampler":
+            self._spawn("transform", "transform", "services.frame_transform", *self.common)
+        for v in self.names:
+            self._spawn(f"gateway.{v}", "gateway", "services.mavlink_gateway", *self.common, "--vehicle", v)
+        self._all_up()
+        self.startup["services"] = time.monotonic() - t_start
+
+    def _decimators(self, vision_rate: float) -> None:
+        if self.decimate == "transform":
+            conf = self.path
             if vision_rate != VISION_RATE:  # the same arena (ports and all), another vision rate
-                conf = path.with_name(f"{path.stem}-v{vision_rate:g}.toml")
+                conf = self.path.with_name(f"{self.path.stem}-v{vision_rate:g}.toml")
                 conf.write_text(
-                    path.read_text().replace(f"vision_rate = {VISION_RATE}", f"vision_rate = {vision_rate}")
+                    self.path.read_text().replace(
+                        f"vision_rate = {VISION_RATE}", f"vision_rate = {vision_rate}"
+                    )
                 )
-            args = ["-c", str(conf), *common[2:]]
-            procs.spawn(
-                "transform", "transform", python_module("services.frame_transform", *args), settings.repo
+            self._spawn(
+                "transform", "transform", "services.frame_transform", "-c", str(conf), *self.common[2:]
             )
             return
-        for v in names:
-            procs.spawn(
-                f"downsampler.{v}",
-                "downsampler",
-                python_module("services.downsampler", *common, "--vehicle", v, "--rate", str(vision_rate)),
-                settings.repo,
-            )
+        for v in self.names:
+            args = (*self.common, "--vehicle", v, "--rate", str(vision_rate))
+            self._spawn(f"downsampler.{v}", "downsampler", "services.downsampler", *args)
 
-    def all_up() -> None:
+    def restart_decimators(self, vision_rate: float) -> None:
+        """The decimators stopped and started again at ``vision_rate``; returns once all are alive."""
+        role = "downsampler" if self.decimate == "downsampler" else "transform"
+        for c in [c for c in self.procs.children if c.role == role]:
+            self.procs.stop(c)
+        self._decimators(vision_rate)
+        self._all_up()
+
+    def _all_up(self) -> None:
         # router, transform, gateways, downsamplers
-        expected_alive = 2 + (2 * n if decimate == "downsampler" else n)
-        assert bus is not None
-        the_bus = bus
+        expected_alive = 2 + (2 * self.n if self.decimate == "downsampler" else self.n)
+        assert self.bus is not None
+        the_bus = self.bus
         wait_until(
             lambda: len(the_bus.alive(f"arena/sys/alive/{HOST}/**", timeout=0.5)) >= expected_alive,
-            settings.start_timeout,
+            self.settings.start_timeout,
             f"{expected_alive} services to come up",
-            procs,
+            self.procs,
         )
 
+    def idle(self) -> dict[str, dict[str, Any]]:
+        """Every process's usage over ``settings.idle`` s with nothing flowing (after ``settings.settle``)."""
+        if self.settings.idle <= 0:
+            return {}
+        time.sleep(self.settings.settle)
+        self.procs.mark()
+        time.sleep(self.settings.idle)
+        return self.procs.usage()
+
     def measure(
-        rate: float, chain: str, vision_rate: float, idle: dict[str, dict[str, Any]], hogs: int = 0
+        self, rate: float, chain: str, vision_rate: float, idle: dict[str, dict[str, Any]], hogs: int = 0
     ) -> PointResult:
-        assert watcher is not None
-        before = watcher.counters()
-        collector.clear()
-        if hop_watcher is not None:
-            hop_watcher.clear()
-        # The emulator first, then the ingest (its handshake then succeeds at once): both per rate.
-        t_emulator = time.monotonic()
-        emulator = procs.spawn(
-            f"emulator.{int(rate)}",
-            "emulator",
-            python_module("services.sim_mocap", *common, "--rate", str(rate)),
-            settings.repo,
-        )
-        wait_until(lambda: collector.count("frames") > 0, settings.start_timeout, "NatNet frames", procs)
-        ingest = procs.spawn(
-            "ingest", "ingest", python_module("services.mocap_ingest", *common), settings.repo
-        )
-        what = f"ODOMETRY from all {n} gateways at {rate:g} Hz"
-        _wait_outputs(collector, n, settings.start_timeout, what, procs, lambda d: odometry_of(d) is not None)
-        if "services" in startup and "vision" not in startup:
-            startup["vision"] = time.monotonic() - t_emulator
-        loads = [
-            procs.spawn(f"hog.{k}", "load", [sys.executable, "-c", "while True: pass"]) for k in range(hogs)
-        ]
-        time.sleep(settings.warmup)
-        procs.check_alive()
-        t0 = time.time_ns()
-        procs.mark()
-        profile = settings.profile(procs, settings.duration) if settings.profile else {}
-        remaining = settings.duration - (time.time_ns() - t0) / 1e9
-        if remaining > 0:
-            time.sleep(remaining)
-        usage = procs.usage()
-        t1 = time.time_ns()
-        for hog in loads:
-            procs.stop(hog)
-        time.sleep(settings.drain)
-        procs.check_alive()
-        procs.stop(emulator)
-        _wait_quiet(collector, list(range(n)))
+        """One load point: the emulator at ``rate`` and the ingest started, the window measured (with
+        ``hogs`` CPU hogs), both stopped, and every ODOMETRY matched to its frame."""
+        assert self.watcher is not None
+        before = self.watcher.counters()
+        self.collector.clear()
+        if self.hop_watcher is not None:
+            self.hop_watcher.clear()
+        emulator, ingest = self._flow(rate)
+        t0, t1, usage, profile = self._window(hogs)
+        time.sleep(self.settings.drain)
+        self.procs.check_alive()
+        self.procs.stop(emulator)
+        _wait_quiet(self.collector, list(range(self.n)))
         time.sleep(1.2)  # one more stats period, so the counters cover the whole run
-        after = watcher.counters()
-        procs.stop(ingest)
-        records = collector.take()
-        frames = decode_frames(records["frames"], body_to_vehicle, transform, version, TICK_FREQUENCY)
-        found = analyze_arena(frames, {i: records[i] for i in range(n)}, t0, t1, rate, vision_rate)
+        after = self.watcher.counters()
+        self.procs.stop(ingest)
+        found = self._analyse(self.collector.take(), t0, t1, rate, vision_rate)
         point = _result(
             chain,
-            n,
+            self.n,
             rate,
             found,
             usage,
@@ -434,10 +481,10 @@ def run_arena(
             idle=idle,
             counters=_delta(before, after),
             profile=profile,
-            hops=hop_breakdown(found["first_vehicle"], hop_watcher.stamps) if hop_watcher else {},
+            hops=hop_breakdown(found["first_vehicle"], self.hop_watcher.stamps) if self.hop_watcher else {},
             window_s=(t1 - t0) / 1e9,
             hogs=hogs,
-            startup=dict(startup) if not results else {},
+            startup=dict(self.startup) if not self.results else {},
         )
         keys_ = ("frames", "frame_gaps", "substituted", "unmatched_time", "clock_residual_us_p99")
         point.notes.append(
@@ -446,74 +493,81 @@ def run_arena(
                 f"{k}={found[k]:.3g}" if isinstance(found[k], float) else f"{k}={found[k]}" for k in keys_
             )
         )
-        results.append(point)
-        if on_point is not None:
-            on_point(point)
+        self.results.append(point)
+        if self.on_point is not None:
+            self.on_point(point)
         return point
 
-    startup: dict[str, float] = {}
-    try:
-        collector.start()
-        t_start = time.monotonic()
-        procs.spawn(
-            "router",
-            "router",
-            python_module("arena_common.cli", "router", "-c", str(path), "--host", HOST),
-            settings.repo,
+    def _flow(self, rate: float) -> tuple[Child, Child]:
+        """The emulator at ``rate``, then the ingest (its handshake then succeeds at once), until every
+        gateway sends ODOMETRY; both are started per rate."""
+        t_emulator = time.monotonic()
+        emulator = self._spawn(
+            f"emulator.{int(rate)}", "emulator", "services.sim_mocap", *self.common, "--rate", str(rate)
         )
-        wait_port(router_port(cfg), 30, "the Zenoh router", procs)
-        bus = open_bus(cfg.zenoh)
-        feeder = TruthFeeder(bus, names).start()
-        watcher = StatsWatcher(bus)
-        if settings.hops:
-            hop_watcher = HopWatcher(bus, names[0])
-        deployed_rate = realistic_vision if deployed_only else None  # the decimators start as deployed
-        decimators(deployed_rate or VISION_RATE)
-        if decimate == "downsampler":
-            procs.spawn(
-                "transform", "transform", python_module("services.frame_transform", *common), settings.repo
-            )
-        for v in names:
-            procs.spawn(
-                f"gateway.{v}",
-                "gateway",
-                python_module("services.mavlink_gateway", *common, "--vehicle", v),
-                settings.repo,
-            )
-        all_up()
-        startup["services"] = time.monotonic() - t_start
-        idle: dict[str, dict[str, Any]] = {}
-        if settings.idle > 0:
-            time.sleep(settings.settle)
-            procs.mark()
-            time.sleep(settings.idle)
-            idle = procs.usage()
-        for rate in rates if deployed_rate is None else ():
-            measure(rate, chain_name, VISION_RATE, idle)
-            idle = {}
-        if realistic_vision is not None:
-            if deployed_rate is None:
-                role = "downsampler" if decimate == "downsampler" else "transform"
-                for c in [c for c in procs.children if c.role == role]:
-                    procs.stop(c)
-                decimators(realistic_vision)
-                all_up()
-            deployed = f"{chain_name}-v{realistic_vision:g}"
-            measure(rates[0], deployed, realistic_vision, idle)
-            if overload > 0:
-                measure(rates[0], f"{deployed}-loaded", realistic_vision, {}, hogs=overload)
-    finally:
-        if hop_watcher is not None:
-            hop_watcher.close()
-        if feeder is not None:
-            feeder.close()
-        if watcher is not None:
-            watcher.close()
-        procs.stop()
-        if bus is not None:
-            bus.close()
-        collector.close()
-    return results
+        wait_until(
+            lambda: self.collector.count("frames") > 0,
+            self.settings.start_timeout,
+            "NatNet frames",
+            self.procs,
+        )
+        ingest = self._spawn("ingest", "ingest", "services.mocap_ingest", *self.common)
+        what = f"ODOMETRY from all {self.n} gateways at {rate:g} Hz"
+        _wait_outputs(
+            self.collector,
+            self.n,
+            self.settings.start_timeout,
+            what,
+            self.procs,
+            lambda d: odometry_of(d) is not None,
+        )
+        if "services" in self.startup and "vision" not in self.startup:
+            self.startup["vision"] = time.monotonic() - t_emulator
+        return emulator, ingest
+
+    def _window(self, hogs: int) -> tuple[int, int, dict[str, dict[str, Any]], dict[str, Any]]:
+        """The warm-up, then the measured window (``hogs`` CPU hogs beside it): its start and end (ns), every
+        process's usage over it and the profile taken during it."""
+        settings = self.settings
+        loads = [
+            self.procs.spawn(f"hog.{k}", "load", [sys.executable, "-c", "while True: pass"])
+            for k in range(hogs)
+        ]
+        time.sleep(settings.warmup)
+        self.procs.check_alive()
+        t0 = time.time_ns()
+        self.procs.mark()
+        profile = settings.profile(self.procs, settings.duration) if settings.profile else {}
+        remaining = settings.duration - (time.time_ns() - t0) / 1e9
+        if remaining > 0:
+            time.sleep(remaining)
+        usage = self.procs.usage()
+        t1 = time.time_ns()
+        for hog in loads:
+            self.procs.stop(hog)
+        return t0, t1, usage, profile
+
+    def _analyse(
+        self, records: dict[Any, list[tuple[int, bytes]]], t0: int, t1: int, rate: float, vision_rate: float
+    ) -> dict[str, Any]:
+        frames = decode_frames(
+            records["frames"], self.body_to_vehicle, self.transform, self.version, self.tick_frequency
+        )
+        outputs = {i: records[i] for i in range(self.n)}
+        return analyze_arena(frames, outputs, t0, t1, rate, vision_rate)
+
+    def close(self) -> None:
+        """Everything stopped and closed: feeds, processes, the session, the sockets."""
+        if self.hop_watcher is not None:
+            self.hop_watcher.close()
+        if self.feeder is not None:
+            self.feeder.close()
+        if self.watcher is not None:
+            self.watcher.close()
+        self.procs.stop()
+        if self.bus is not None:
+            self.bus.close()
+        self.collector.close()
 
 
 def _env(repo: Path) -> dict[str, str]:

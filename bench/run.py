@@ -288,16 +288,7 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
     out_dir.mkdir(parents=True, exist_ok=True)
     stamp = time.strftime("%Y%m%dT%H%M%S", time.localtime(started))
     logs = Path(tempfile.mkdtemp(prefix=f"arena-bench-{stamp}-"))
-    settings = RunSettings(
-        duration=options.duration,
-        warmup=options.warmup,
-        idle=options.idle,
-        logs=logs,
-        repo=options.repo,
-        profile=make_profiler(out_dir / f"profile-{stamp}") if options.profile else None,
-        hops=options.hops,
-        vehicle_mode=options.vehicle_mode,
-    )
+    settings = _settings(options, logs, out_dir / f"profile-{stamp}")
     result: dict[str, Any] = {
         "version": 1,
         "started": time.strftime("%Y-%m-%d %H:%M:%S %z", time.localtime(started)),
@@ -309,14 +300,72 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
     points: list[PointResult] = []
     timings: dict[str, float] = {}
     result["timings_s"] = timings
+    _announce(console, result, logs)
+    try:
+        if "pipeline" in options.parts or "floor" in options.parts:
+            on_point = _point_printer(console, points)
+            _run_loads(console, options, settings, on_point, timings)
+            if "pipeline" in options.parts and options.fleet and options.realistic_vision is not None:
+                console.print(
+                    f"[bold]fleet[/bold], {options.fleet} vehicles, vision {options.realistic_vision:g} Hz"
+                )
+                _run_fleet(options, settings, on_point, timings)
+            result["points"] = [_clean(p.as_dict()) for p in points]
+            _print_points(console, points)
+        if "peer" in options.parts:
+            _run_peer(console, options, settings, timings, result)
+        if "micro" in options.parts:
+            from bench.micro import run_micro
 
-    @contextlib.contextmanager
-    def timed(name: str) -> Iterator[None]:
-        t = time.monotonic()
-        try:
-            yield
-        finally:
-            timings[name] = round(time.monotonic() - t, 1)
+            console.print("[bold]micro[/bold]-benchmarks")
+            with _timed(timings, "micro"):
+                result["micro"] = _clean(run_micro(options.micro_scale))
+            console.print(
+                _rich("Per-stage micro-benchmarks", ["stage", "case", "cost"], micro_rows(result["micro"]))
+            )
+    finally:
+        result["points"] = [_clean(p.as_dict()) for p in points]
+        result["elapsed_s"] = time.time() - started
+        result["load_after"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else []
+        result["logs"] = str(logs)
+        targets = evaluate_targets(_with_nan(result))
+        result["targets"] = [asdict(t) for t in targets]
+        path = _write_result(result, out_dir, stamp)
+    console.print(_rich("Targets", ["target", "goal", "measured", ""], target_rows(targets)))
+    if options.docs is not None:
+        update_docs(options.docs, _with_nan(result))
+        console.print(f"tables written into {options.docs}")
+    console.print(f"result: {path} ({result['elapsed_s']:.0f} s)")
+    shutil.rmtree(logs, ignore_errors=True)
+    return result
+
+
+def _settings(options: BenchOptions, logs: Path, profile_dir: Path) -> RunSettings:
+    """The pipeline's run settings from ``options`` (the other parts adapt them)."""
+    return RunSettings(
+        duration=options.duration,
+        warmup=options.warmup,
+        idle=options.idle,
+        logs=logs,
+        repo=options.repo,
+        profile=make_profiler(profile_dir) if options.profile else None,
+        hops=options.hops,
+        vehicle_mode=options.vehicle_mode,
+    )
+
+
+@contextlib.contextmanager
+def _timed(timings: dict[str, float], name: str) -> Iterator[None]:
+    """``timings[name]``: the seconds the block took (0.1 s), exception or not."""
+    t = time.monotonic()
+    try:
+        yield
+    finally:
+        timings[name] = round(time.monotonic() - t, 1)
+
+
+def _point_printer(console: Console, points: list[PointResult]) -> Callable[[PointResult], None]:
+    """Each point as it comes: kept in ``points``, and one line on the console."""
 
     def on_point(p: PointResult) -> None:
         points.append(p)
@@ -329,6 +378,11 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
             + f"  load {os.getloadavg()[0]:.2f}"
         )
 
+    return on_point
+
+
+def _announce(console: Console, result: dict[str, Any], logs: Path) -> None:
+    """The machine, its load (a warning when busy) and where the logs go."""
     busy = result["load_before"] and result["load_before"][0] > (os.cpu_count() or 1) * 0.75
     if busy:
         console.print(
@@ -339,109 +393,117 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
         f"[bold]make bench[/bold]: {result['machine']['cpu']}, {result['machine']['cores']} cores, "
         f"load {', '.join(f'{x:.2f}' for x in result['load_before'])}; logs in {logs}"
     )
-    try:
-        if "pipeline" in options.parts or "floor" in options.parts:
-            for n in options.vehicles:
-                if "pipeline" in options.parts:
-                    console.print(f"[bold]pipeline[/bold], {n} vehicle(s)")
-                    with timed(f"pipeline {n}"):
-                        for decimate in options.decimate:
-                            # The deployed point (vision 50 Hz), and at the largest load the overloaded
-                            # one, for the last configuration measured only (transform by default): it
-                            # keeps the run short.
-                            last = decimate == options.decimate[-1]
-                            real = options.realistic_vision if last else None
-                            hogs = options.overload if n == max(options.vehicles) else 0
-                            run_arena(
-                                n,
-                                options.rates,
-                                settings,
-                                realistic_vision=real,
-                                overload=hogs if real is not None else 0,
-                                on_point=on_point,
-                                decimate=decimate,
-                            )
-                if "floor" in options.parts:
-                    for kind in options.floors:
-                        with timed(f"floor-{kind} {n}"):
-                            floor_settings = replace(settings, profile=None, idle=0.0, hops=False)
-                            run_floor(
-                                kind,
-                                n,
-                                options.rates,
-                                floor_settings,
-                                vision_rate=options.realistic_vision,
-                                on_point=on_point,
-                            )
-            if "pipeline" in options.parts and options.fleet and options.realistic_vision is not None:
-                n = options.fleet
-                console.print(f"[bold]fleet[/bold], {n} vehicles, vision {options.realistic_vision:g} Hz")
-                fleet_settings = replace(
-                    settings,
-                    settle=options.fleet_settle,
-                    idle=max(settings.idle, 2.0),
-                    vehicle_mode=options.vehicle_mode or "client",  # as `arena demo --vehicles N` flies
-                )
-                for decimate in reversed(options.decimate):  # transform first: it keeps up best
-                    with timed(f"fleet {n} {decimate}"):
-                        run_arena(
-                            n,
-                            options.rates[:1],
-                            fleet_settings,
-                            realistic_vision=options.realistic_vision,
-                            overload=options.overload if decimate == "transform" else 0,
-                            on_point=on_point,
-                            decimate=decimate,
-                            deployed_only=True,
-                        )
-            result["points"] = [_clean(p.as_dict()) for p in points]
-            console.print(_rich("End-to-end latency", LATENCY_HEADER, latency_rows(points)))
-            console.print(_rich("CPU (% of one core) and memory", RESOURCE_HEADER, resource_rows(points)))
-            if hop_rows(points):
-                console.print(_rich("Per stage, first vehicle (p50 / p99 ms)", HOPS_HEADER, hop_rows(points)))
-        if "peer" in options.parts:
-            from bench.peer import run_peers
 
-            console.print("[bold]peer[/bold]: gateway, its floors and MAVProxy")
-            peer_settings = replace(settings, duration=options.peer_duration, profile=None)
-            with timed("peer"):
-                result["peer"] = _clean(
-                    run_peers(options.peer_rate, peer_settings, options.peer_repeats, options.peer_sweep)
-                )
-            runs = f"median (min–max) of {options.peer_repeats} runs" if options.peer_repeats > 1 else "1 run"
-            title = (
-                f"Gateway vs its floors and MAVProxy ({options.peer_rate:g} Hz, {runs} of "
-                f"{options.peer_duration:g} s each)"
-            )
-            _print_peer(console, title, result["peer"])
-        if "micro" in options.parts:
-            from bench.micro import run_micro
 
-            console.print("[bold]micro[/bold]-benchmarks")
-            with timed("micro"):
-                result["micro"] = _clean(run_micro(options.micro_scale))
-            console.print(
-                _rich("Per-stage micro-benchmarks", ["stage", "case", "cost"], micro_rows(result["micro"]))
+def _run_loads(
+    console: Console,
+    options: BenchOptions,
+    settings: RunSettings,
+    on_point: Callable[[PointResult], None],
+    timings: dict[str, float],
+) -> None:
+    """The pipeline and floor parts: at each vehicle count, every configuration, then every floor."""
+    for n in options.vehicles:
+        if "pipeline" in options.parts:
+            console.print(f"[bold]pipeline[/bold], {n} vehicle(s)")
+            with _timed(timings, f"pipeline {n}"):
+                for decimate in options.decimate:
+                    # The deployed point (vision 50 Hz), and at the largest load the overloaded one, for
+                    # the last configuration measured only (transform by default): it keeps the run short.
+                    last = decimate == options.decimate[-1]
+                    real = options.realistic_vision if last else None
+                    hogs = options.overload if n == max(options.vehicles) else 0
+                    run_arena(
+                        n,
+                        options.rates,
+                        settings,
+                        realistic_vision=real,
+                        overload=hogs if real is not None else 0,
+                        on_point=on_point,
+                        decimate=decimate,
+                    )
+        if "floor" in options.parts:
+            for kind in options.floors:
+                with _timed(timings, f"floor-{kind} {n}"):
+                    floor_settings = replace(settings, profile=None, idle=0.0, hops=False)
+                    run_floor(
+                        kind,
+                        n,
+                        options.rates,
+                        floor_settings,
+                        vision_rate=options.realistic_vision,
+                        on_point=on_point,
+                    )
+
+
+def _run_fleet(
+    options: BenchOptions,
+    settings: RunSettings,
+    on_point: Callable[[PointResult], None],
+    timings: dict[str, float],
+) -> None:
+    """The fleet point: ``options.fleet`` vehicles as deployed, in every configuration (transform first)."""
+    assert options.realistic_vision is not None
+    n = options.fleet
+    fleet_settings = replace(
+        settings,
+        settle=options.fleet_settle,
+        idle=max(settings.idle, 2.0),
+        vehicle_mode=options.vehicle_mode or "client",  # as `arena demo --vehicles N` flies
+    )
+    for decimate in reversed(options.decimate):  # transform first: it keeps up best
+        with _timed(timings, f"fleet {n} {decimate}"):
+            run_arena(
+                n,
+                options.rates[:1],
+                fleet_settings,
+                realistic_vision=options.realistic_vision,
+                overload=options.overload if decimate == "transform" else 0,
+                on_point=on_point,
+                decimate=decimate,
+                deployed_only=True,
             )
-    finally:
-        result["points"] = [_clean(p.as_dict()) for p in points]
-        result["elapsed_s"] = time.time() - started
-        result["load_after"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else []
-        result["logs"] = str(logs)
-        targets = evaluate_targets(_with_nan(result))
-        result["targets"] = [asdict(t) for t in targets]
-        text = json.dumps(_clean(result), indent=1, default=_json_default, allow_nan=False)
-        path = out_dir / f"bench-{stamp}.json"
-        path.write_text(text)
-        (out_dir / "latest.json").write_text(text)
-        result["path"] = str(path)
-    console.print(_rich("Targets", ["target", "goal", "measured", ""], target_rows(targets)))
-    if options.docs is not None:
-        update_docs(options.docs, _with_nan(result))
-        console.print(f"tables written into {options.docs}")
-    console.print(f"result: {path} ({result['elapsed_s']:.0f} s)")
-    shutil.rmtree(logs, ignore_errors=True)
-    return result
+
+
+def _print_points(console: Console, points: list[PointResult]) -> None:
+    console.print(_rich("End-to-end latency", LATENCY_HEADER, latency_rows(points)))
+    console.print(_rich("CPU (% of one core) and memory", RESOURCE_HEADER, resource_rows(points)))
+    if hop_rows(points):
+        console.print(_rich("Per stage, first vehicle (p50 / p99 ms)", HOPS_HEADER, hop_rows(points)))
+
+
+def _run_peer(
+    console: Console,
+    options: BenchOptions,
+    settings: RunSettings,
+    timings: dict[str, float],
+    result: dict[str, Any],
+) -> None:
+    """The peer comparison into ``result["peer"]``, and its tables."""
+    from bench.peer import run_peers
+
+    console.print("[bold]peer[/bold]: gateway, its floors and MAVProxy")
+    peer_settings = replace(settings, duration=options.peer_duration, profile=None)
+    with _timed(timings, "peer"):
+        result["peer"] = _clean(
+            run_peers(options.peer_rate, peer_settings, options.peer_repeats, options.peer_sweep)
+        )
+    runs = f"median (min–max) of {options.peer_repeats} runs" if options.peer_repeats > 1 else "1 run"
+    title = (
+        f"Gateway vs its floors and MAVProxy ({options.peer_rate:g} Hz, {runs} of "
+        f"{options.peer_duration:g} s each)"
+    )
+    _print_peer(console, title, result["peer"])
+
+
+def _write_result(result: dict[str, Any], out_dir: Path, stamp: str) -> Path:
+    """``result`` as ``<out_dir>/bench-<stamp>.json`` and ``latest.json``; its ``path`` set to the first."""
+    text = json.dumps(_clean(result), indent=1, default=_json_default, allow_nan=False)
+    path = out_dir / f"bench-{stamp}.json"
+    path.write_text(text)
+    (out_dir / "latest.json").write_text(text)
+    result["path"] = str(path)
+    return path
 
 
 def _print_peer(console: Console, title: str, peer: dict[str, Any]) -> None:

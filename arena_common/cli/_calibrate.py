@@ -5,8 +5,8 @@ a rotation about Down and an offset (``[calibration] yaw_deg, offset``). Place o
 more marks whose arena coordinates (north, east, down from the floor's centre) are known; the command
 averages the body's raw Motive position at each mark over about a second, solves the least-squares yaw
 and offset (:func:`~arena_common.geometry.frames.solve_calibration`), prints them with the residual at each mark,
-and with ``--write`` rewrites the ``[calibration]`` table of the config file in place (every other byte of
-the file is kept).
+and with ``--write`` sets the two values of the ``[calibration]`` table in the config file (the file's
+comments and everything else in it are kept).
 
 Three ways to give the marks:
 
@@ -34,7 +34,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, TextIO
 
+import tomlkit
 import typer
+from tomlkit.container import OutOfOrderTableProxy
+from tomlkit.exceptions import TOMLKitError
+from tomlkit.items import InlineTable, Item, Table
 
 from arena_common.bus.session import Subscription, open_bus
 from arena_common.cli._globals import bus as global_bus
@@ -272,106 +276,39 @@ def format_calibration(cal: Calibration) -> tuple[str, str]:
     return _num(cal.yaw_deg, 4), "[" + ", ".join(_num(v, 4) for v in cal.offset_ned) + "]"
 
 
-_HEADER_RE = re.compile(r"^\s*\[\s*(?P<name>[^\[\]]+?)\s*\]\s*(#.*)?$")
-_ANY_HEADER_RE = re.compile(r"^\s*\[")
-_QUOTED = {"yaw_deg": r"(?:yaw_deg|\"yaw_deg\"|'yaw_deg')", "offset": r"(?:offset|\"offset\"|'offset')"}
-
-
-def _key_re(key: str) -> re.Pattern[str]:
-    return re.compile(rf"^(?P<lead>\s*{_QUOTED[key]}\s*=\s*)(?P<value>[^#]*?)(?P<tail>\s*(?:#.*)?)$")
-
-
-def _split_eol(line: str) -> tuple[str, str]:
-    body = line.rstrip("\r\n")
-    return body, line[len(body) :]
-
-
 def update_calibration_text(text: str, cal: Calibration) -> str:
     """``text`` (a TOML config) with its ``[calibration]`` ``yaw_deg`` and ``offset`` set to ``cal``.
 
-    Only those two values change: their keys, comments (kept in the same column when the new value fits)
-    and every other line stay byte for byte. Missing keys are added at the end of the table; a missing
-    table is appended to the file. A calibration written inline or with dotted keys is refused.
+    Only those two values change (edited with :mod:`tomlkit`): their keys, comments (kept in the same
+    column when the new value fits on the line) and everything else in the file stay as they were; a
+    multi-line ``offset`` becomes one line. A missing key is added at the end of the table, a missing table
+    at the end of the file. Inline and dotted ``calibration`` tables are edited where they are.
     """
-    eol = "\r\n" if "\r\n" in text else "\n"
-    lines = text.splitlines(keepends=True)
-    values = dict(zip(("yaw_deg", "offset"), format_calibration(cal), strict=True))
-    start = None
-    for i, line in enumerate(lines):
-        m = _HEADER_RE.match(_split_eol(line)[0])
-        if m and m.group("name").strip().strip("\"'") == "calibration":
-            start = i
-            break
-    if start is None:
-        if re.search(r"^\s*calibration\s*[.=]", text, re.MULTILINE):
-            raise CalibrateError(
-                "the calibration is written inline or with dotted keys; make it a [calibration] table"
-            )
-        tail = "" if not text or text.endswith(("\n", "\r")) else eol
-        block = f"{eol}[calibration]{eol}yaw_deg = {values['yaw_deg']}{eol}offset = {values['offset']}{eol}"
-        return text + tail + block
-    end = len(lines)
-    for j in range(start + 1, len(lines)):
-        if _ANY_HEADER_RE.match(lines[j]) and not _in_array(lines, start + 1, j):
-            end = j
-            break
-    out = lines[: start + 1]
-    seen: set[str] = set()
-    last_key_line = start
-    j = start + 1
-    while j < end:
-        body, nl = _split_eol(lines[j])
-        for key, value in values.items():
-            m = _key_re(key).match(body)
-            if m is None:
-                continue
-            if key in seen:
-                raise CalibrateError(f"[calibration] sets {key} twice")
-            seen.add(key)
-            old, tail = m.group("value"), m.group("tail")
-            consumed = 1
-            if key == "offset" and old.count("[") > old.count("]"):
-                # A multi-line array: it becomes one line, keeping the comment of its last line.
-                k = j + 1
-                while k < end and "]" not in lines[k].split("#", 1)[0]:
-                    k += 1
-                if k >= end:
-                    raise CalibrateError("[calibration] offset: unterminated array")
-                last_body, nl = _split_eol(lines[k])
-                after = last_body.split("#", 1)
-                tail = (" #" + after[1]) if len(after) == 2 else ""
-                old = value
-                consumed = k - j + 1
-            comment = tail.lstrip()
-            if comment:  # keep the comment in its column when the new value leaves room
-                gap = len(tail) - len(comment)
-                tail = " " * max(1, gap + len(old) - len(value)) + comment
-            out.append(f"{m.group('lead')}{value}{tail}{nl}")
-            last_key_line = len(out) - 1
-            j += consumed
-            break
-        else:
-            out.append(lines[j])
-            if body.strip() and not body.lstrip().startswith("#"):
-                last_key_line = len(out) - 1
-            j += 1
-    missing = [k for k in values if k not in seen]
-    if missing:
-        if not out[last_key_line].endswith(("\n", "\r")):
-            out[last_key_line] += eol
-        added = [f"{k} = {values[k]}{eol}" for k in missing]
-        out[last_key_line + 1 : last_key_line + 1] = added
-    out.extend(lines[end:])
-    return "".join(out)
-
-
-def _in_array(lines: list[str], first: int, j: int) -> bool:
-    """True if line ``j`` is inside a multi-line array opened in ``lines[first:j]`` (brackets unbalanced)."""
-    depth = 0
-    for line in lines[first:j]:
-        code = line.split("#", 1)[0]
-        depth += code.count("[") - code.count("]")
-    return depth > 0
+    try:
+        doc = tomlkit.parse(text)
+    except TOMLKitError as exc:
+        raise CalibrateError(f"not valid TOML: {exc}") from None
+    table = doc.get("calibration")
+    if table is None:
+        table = tomlkit.table()
+        doc.add(tomlkit.nl())  # a blank line before the new table ...
+        if text and not text.endswith("\n"):
+            doc.add(tomlkit.nl())  # ... after the last line's own end
+        doc.add("calibration", table)
+    elif not isinstance(table, Table | InlineTable | OutOfOrderTableProxy):
+        raise CalibrateError(f"calibration must be a table, got {type(table.unwrap()).__name__}")
+    for key, value in zip(("yaw_deg", "offset"), format_calibration(cal), strict=True):
+        new = tomlkit.value(value)
+        old = table.get(key)
+        if isinstance(old, Item) and old.trivia.comment and "\n" not in old.as_string():
+            # keep the comment in its column when the new value leaves room
+            width = len(old.trivia.comment_ws) + len(old.as_string()) - len(value)
+            new.trivia.comment_ws = " " * max(1, width)
+        table[key] = new
+    new_text = doc.as_string()
+    if "\r\n" in text and not re.search(r"(?<!\r)\n", text):  # a CRLF file: its added lines end in CRLF
+        new_text = re.sub(r"(?<!\r)\n", "\r\n", new_text)
+    return new_text
 
 
 def write_calibration(path: Path | str, cal: Calibration) -> str:
@@ -387,7 +324,10 @@ def write_calibration(path: Path | str, cal: Calibration) -> str:
         raise CalibrateError(f"{p}: cannot read: {exc.strerror or exc}") from None
     except UnicodeDecodeError:
         raise CalibrateError(f"{p}: not UTF-8 text") from None
-    new = update_calibration_text(text, cal)
+    try:
+        new = update_calibration_text(text, cal)
+    except CalibrateError as exc:
+        raise CalibrateError(f"{p}: {exc}") from None
     _check_rewrite(p, text, new, cal)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=p.parent)
     try:
@@ -413,8 +353,9 @@ def _check_rewrite(p: Path, old: str, new: str, cal: Calibration) -> None:
         abs(a - b) > 1e-4 for a, b in zip(got.offset, cal.offset_ned, strict=True)
     ):
         raise CalibrateError(f"{p}: refusing to write, the rewritten [calibration] does not read back")
-    before.pop("calibration", None)
-    after.pop("calibration", None)
+    for doc in (before, after):  # all but the two values written
+        table = doc.pop("calibration", {})
+        doc["calibration"] = {k: v for k, v in table.items() if k not in ("yaw_deg", "offset")}
     if before != after:
         raise CalibrateError(f"{p}: refusing to write, the rewrite would change more than [calibration]")
 

@@ -15,7 +15,6 @@ process alive once it is done: each vehicle's action runs in a daemon thread, le
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import signal
@@ -29,10 +28,12 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any
 
+import tomlkit
 import typer
 from rich.console import Console, Group
 from rich.live import Live
 from rich.text import Text
+from tomlkit.items import InlineTable
 
 from arena_common.cli._flight import Snapshot
 from arena_common.cli._globals import config_file as global_config_file
@@ -252,45 +253,10 @@ def _free_udp_ports(n: int) -> list[int]:
             s.close()
 
 
-def _key(name: str) -> str:
-    return name if name and all(c.isalnum() or c in "_-" for c in name) else json.dumps(name)
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int | float):
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value, ensure_ascii=False)  # a TOML basic string
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{ " + ", ".join(f"{_key(k)} = {_toml_value(v)}" for k, v in value.items()) + " }"
-    raise TypeError(f"cannot write {type(value).__name__} as TOML")
-
-
-def to_toml(doc: Mapping[str, Any]) -> str:
-    """``doc`` (tables of tables of values, as :mod:`tomllib` reads a config) as TOML text."""
-    lines: list[str] = []
-
-    def table(name: str, body: Mapping[str, Any]) -> None:
-        values = {k: v for k, v in body.items() if not isinstance(v, dict) or name.startswith("vehicles.")}
-        if name.startswith("vehicles.") or values or not body:
-            lines.append(f"[{name}]")
-            lines.extend(f"{_key(k)} = {_toml_value(v)}" for k, v in values.items())
-            lines.append("")
-        for k, v in body.items():
-            if isinstance(v, dict) and k not in values:
-                table(f"{name}.{_key(k)}", v)
-
-    for key, value in doc.items():
-        if not isinstance(value, dict):
-            lines.insert(0, f"{_key(key)} = {_toml_value(value)}")
-    for key, value in doc.items():
-        if isinstance(value, dict):
-            table(key, value)
-    return "\n".join(lines)
+def _inline(values: Mapping[str, Any]) -> InlineTable:
+    table = tomlkit.inline_table()
+    table.update(values)
+    return table
 
 
 def fleet_config(base: Path, n: int, out: Path) -> tuple[Path, dict[str, tuple[float, float]]]:
@@ -333,13 +299,13 @@ def fleet_config(base: Path, n: int, out: Path) -> tuple[Path, dict[str, tuple[f
             "rigid_body": name,
             "mavlink": f"udpin:127.0.0.1:{port}",
             "system_id": i + 1,
-            "stream_rates": dict(FLEET_STREAMS),
-            "sim": {"start": list(spot)},
+            "stream_rates": _inline(FLEET_STREAMS),
+            "sim": _inline({"start": list(spot)}),
         }
         for i, (name, port, spot) in enumerate(zip(names, _free_udp_ports(n), spots, strict=True))
     }
     header = f"# {n} simulated vehicles on a grid, from {base} (written by `arena demo --vehicles {n}`)\n\n"
-    out.write_text(header + to_toml(doc) + "\n")
+    out.write_text(header + tomlkit.dumps(doc))
     load_config(out)  # what we wrote is a valid config
     return out, dict(zip(names, spots, strict=True))
 

@@ -20,7 +20,13 @@ from typer.testing import CliRunner
 
 from arena_common.bus.session import Bus
 from arena_common.cli import app
-from arena_common.cli._calibrate import CalibrateError, parse_mark, read_points_csv, update_calibration_text
+from arena_common.cli._calibrate import (
+    CalibrateError,
+    parse_mark,
+    read_points_csv,
+    update_calibration_text,
+    write_calibration,
+)
 from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.geometry.frames import Calibration
@@ -81,19 +87,55 @@ def test_update_variants() -> None:
     assert update_calibration_text(crlf, cal) == (
         head + '"yaw_deg" = 5.0000\r\noffset = [0.0000, 0.0000, 1.0000] # m\r\n' + tail
     )
-    # A key missing from the table is added after its last key; the comment before the next table stays.
-    partial = "[calibration]\nyaw_deg = 0.0\n\n# the room\n[arena]\n"
-    assert update_calibration_text(partial, cal) == (
-        "[calibration]\nyaw_deg = 5.0000\noffset = [0.0000, 0.0000, 1.0000]\n\n# the room\n[arena]\n"
-    )
-    # No table at all (and no final newline): one is appended.
+    # A key missing from the table is added to it; its comments stay.
+    partial = "[calibration]\nyaw_deg = 0.0 # about Down\n\n# the room\n[arena]\n"
+    new = update_calibration_text(partial, cal)
+    assert "yaw_deg = 5.0000 # about Down\n" in new and "\n# the room\n" in new
+    assert tomllib.loads(new) == {"calibration": {"yaw_deg": 5.0, "offset": [0.0, 0.0, 1.0]}, "arena": {}}
+    # No table at all (and no final newline): one is appended, in the file's line ends.
     assert update_calibration_text('[arena]\nname = "x"', cal) == (
         '[arena]\nname = "x"\n\n[calibration]\nyaw_deg = 5.0000\noffset = [0.0000, 0.0000, 1.0000]\n'
     )
-    with pytest.raises(CalibrateError, match="inline or with dotted keys"):
-        update_calibration_text("calibration = { yaw_deg = 1.0 }\n", cal)
-    with pytest.raises(CalibrateError, match="twice"):
+    assert update_calibration_text('[arena]\r\nname = "x"\r\n', cal) == (
+        '[arena]\r\nname = "x"\r\n\r\n[calibration]\r\nyaw_deg = 5.0000\r\noffset = [0.0000, 0.0000, 1.0000]\r\n'
+    )
+    # Inline and dotted tables are edited where they stand.
+    assert update_calibration_text("calibration = { yaw_deg = 1.0 } # c\n", cal) == (
+        "calibration = { yaw_deg = 5.0000, offset = [0.0000, 0.0000, 1.0000]} # c\n"
+    )
+    dotted = update_calibration_text("calibration.yaw_deg = 1.0 # c\n[arena]\n", cal)
+    assert dotted.startswith("calibration.yaw_deg = 5.0000 # c\n")
+    assert tomllib.loads(dotted)["calibration"] == {"yaw_deg": 5.0, "offset": [0.0, 0.0, 1.0]}
+    with pytest.raises(CalibrateError, match="already exists"):
         update_calibration_text("[calibration]\nyaw_deg = 1\nyaw_deg = 2\n", cal)
+    with pytest.raises(CalibrateError, match="calibration must be a table, got int"):
+        update_calibration_text("calibration = 3\n", cal)
+
+
+def test_write_keeps_the_comments_and_changes_the_calibration_only(tmp_path: Path) -> None:
+    """A commented config, calibrated: every comment and other line is kept, the new values read back."""
+    path = tmp_path / "arena.toml"
+    original = SIM_TOML.replace(
+        "[calibration]\n",
+        "# surveyed 2024-05: marks on the floor's grid\n[calibration]  # by `arena calibrate`\n",
+    )
+    path.write_text(original, encoding="utf-8")
+    write_calibration(path, Calibration.from_degrees(30.0, (1.5, -0.7, 0.02)))
+    new = path.read_text(encoding="utf-8")
+    comments = [line.partition("#")[2] for line in original.splitlines() if "#" in line]
+    assert comments and [line.partition("#")[2] for line in new.splitlines() if "#" in line] == comments
+    assert [old for old, _ in changed_lines(original, new)] == [
+        line for line in original.splitlines(keepends=True) if line.startswith(("yaw_deg", "offset"))
+    ]
+    got = config_mod.load(path)
+    assert got.calibration.yaw_deg == 30.0 and got.calibration.offset == (1.5, -0.7, 0.02)
+    before = config_mod.parse(tomllib.loads(original))
+    assert got.mocap == before.mocap and got.vehicles == before.vehicles and got.zenoh == before.zenoh
+    # A file the rewrite would break is left as it was, the error naming it.
+    path.write_text("[calibration]\nyaw_deg = 1\nyaw_deg = 2\n", encoding="utf-8")
+    with pytest.raises(CalibrateError, match=r"arena\.toml: not valid TOML"):
+        write_calibration(path, Calibration.from_degrees(30.0, (0.0, 0.0, 0.0)))
+    assert path.read_text(encoding="utf-8") == "[calibration]\nyaw_deg = 1\nyaw_deg = 2\n"
 
 
 def test_parse_mark_and_csv_errors(tmp_path: Path) -> None:
