@@ -17,12 +17,12 @@ import typer
 
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig
-from arena_common.core.errors import ConfigError
-from arena_common.ros2.bridge import Bridge, BridgeOptions
+from arena_common.core.errors import ConfigError, MissingExtra
+from arena_common.core.services import by_module, missing_extra
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.service import running
 
-SERVICE = "ros2"
+SERVICE = by_module("services.ros2").name  # its one name: arena_common/core/services.py
 
 
 def default_domain() -> int:
@@ -48,6 +48,11 @@ def main(
     dom = default_domain() if domain is None else domain
     if not 0 <= dom <= 232:
         raise ConfigError(f"ROS domain {dom} outside 0..232")
+    why = missing_extra("ros2")
+    if why:  # said before anything of the extra is imported: arena up, systemd, python -m alike
+        raise MissingExtra(f"the ROS 2 service: {why}")
+    from arena_common.ros2.bridge import Bridge, BridgeOptions
+
     with running(SERVICE, cfg, options, host=host, stop=stop) as svc:
         bridge = Bridge(
             cfg,

@@ -15,6 +15,10 @@ class ConfigError(ArenaError, ValueError):
     """A configuration file that is missing, unreadable or wrong; the message names file and field."""
 
 
+class MissingExtra(ArenaError, ImportError):
+    """An optional extra this needs is not installed; the message names it and its ``pip install`` line."""
+
+
 class PayloadError(ArenaError, ValueError):
     """A payload that does not decode to its type: names the key, the type and the field."""
 

@@ -46,6 +46,15 @@ def test_a_service_without_its_extra_names_it(bare: Path, tmp_path: Path) -> Non
     assert "pip install 'flying-arena[ros2]'" in done.stderr, done.stderr
 
 
+def test_the_service_as_arena_up_and_systemd_start_it_names_it(bare: Path, tmp_path: Path) -> None:
+    python = bare.parent / "python"
+    argv = [str(python), "-m", "services.ros2", "-c", str(REPO / "deploy/sim.toml")]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == 2, done
+    assert "Traceback" not in done.stderr + done.stdout, done.stderr
+    assert "the ROS 2 service: this needs the optional extra 'ros2'" in done.stderr, done.stderr
+
+
 def test_an_export_without_its_extra_names_it(bare: Path, tmp_path: Path) -> None:
     recording = tmp_path / "flight.mcap"
     recording.write_bytes(b"")  # the extra is checked before the file is read
