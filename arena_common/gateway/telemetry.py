@@ -63,6 +63,11 @@ class TelemetryPublisher:
             pub.put(wire.Telemetry(t=t_ns, msg=name, f=dict(fields)))
             self.published += 1
 
+    @property
+    def watched(self) -> list[str]:
+        """The message names someone subscribes to now (as the bus's matching status says)."""
+        return [name for name, pub in self._pubs.items() if pub.matching]
+
     def _publisher(self, name: str) -> Publisher[wire.Telemetry]:
         pub = self._pubs.get(name)
         if pub is None:

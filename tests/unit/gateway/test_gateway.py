@@ -355,7 +355,7 @@ def test_state_telemetry_and_timesync(make_rig: Callable[..., Rig]) -> None:
     sub.channel.drain()
     n0, t0 = rig.state_count["d1"], time.monotonic()
     time.sleep(2.0)
-    n1 = rig.state_count["d1"]
+    n1, slept = rig.state_count["d1"], time.monotonic() - t0  # a loaded machine sleeps longer than asked
 
     def collect() -> bool:
         for item in sub.channel.drain():
@@ -369,10 +369,10 @@ def test_state_telemetry_and_timesync(make_rig: Callable[..., Rig]) -> None:
     took = time.monotonic() - t0
     later = rig.state("d1")
     assert later is not None
-    # Flowing, and never faster than designed (50 Hz vision and state).
+    # Flowing, and never faster than designed (50 Hz vision and state), judged over the time it took.
     assert 10 <= later.vis_rate <= 60, later.vis_rate
-    assert later.vis_age is not None and later.vis_age < 0.5
-    assert 20 <= n1 - n0 <= 110, n1 - n0
+    rig.wait_state("d1", lambda s: s.vis_age is not None and s.vis_age < 0.5, 10.0, "fresh vision")
+    assert 20 <= n1 - n0 <= 50 * slept + 10, (n1 - n0, slept)
     # Raw telemetry: every message type, at most 10 Hz each; TIMESYNC requests are not republished.
     assert {"HEARTBEAT", "ATTITUDE_QUATERNION", "LOCAL_POSITION_NED", "SYS_STATUS", "HIGHRES_IMU"} <= set(
         tele
@@ -385,7 +385,8 @@ def test_state_telemetry_and_timesync(make_rig: Callable[..., Rig]) -> None:
     # the count of unwatched messages grows.
     telemetry = rig.gateways["d1"].telemetry
     sub.close()
-    wait_for(lambda: telemetry.unwatched > 20, 10.0, what="unwatched telemetry counted")
+    # The bus tells the gateway the subscriber left (its matching status), each message type in its own time.
+    wait_for(lambda: not telemetry.watched, 10.0, what="no telemetry watched")
     published = telemetry.published
     unwatched = telemetry.unwatched
     wait_for(lambda: telemetry.unwatched > unwatched + 20, 10.0, what="more unwatched telemetry")
