@@ -44,13 +44,26 @@ class TimeSync:
         self.rtt_s: float | None = None
         self.offset_s: float | None = None
         self.rtt_min_s: float | None = None
+        self.jitter_s: float | None = None
+        self.measured = 0  # answers to our own requests measured
+        self.accepted_since_reset = 0  # answers given while the link's round trip was under PX4's limit
 
     @property
     def autopilot_converged(self) -> bool:
-        """Whether PX4 has had :data:`PX4_CONVERGENCE_WINDOW` answers since the gateway started or it rebooted:
-        from then on (if their round trips were under :data:`PX4_MAX_RTT_S`) it takes our vision stamps,
-        before it uses their arrival time.  An estimate: the link's round trip is PX4's to judge."""
-        return self.answered_since_reset >= PX4_CONVERGENCE_WINDOW
+        """Whether PX4 has had :data:`PX4_CONVERGENCE_WINDOW` answers it could accept since the gateway
+        started or it rebooted (each given while the link's last measured round trip was under
+        :data:`PX4_MAX_RTT_S`, or before any was measured): from then on it takes our vision stamps, before it uses their arrival time.
+        An estimate: PX4 judges each answer by its own round trip, which ours measures on the same link."""
+        return self.accepted_since_reset >= PX4_CONVERGENCE_WINDOW
+
+    @property
+    def stamps(self) -> str:
+        """Whose clock stamps vision in the autopilot: ``ours`` (PX4 took the gateway's clock), ``arrival``
+        (it stamps a sample when it arrives: the link's delay is then in every vision sample's age), or
+        ``""`` before any round trip was measured."""
+        if self.autopilot_converged:
+            return "ours"
+        return "" if self.rtt_s is None else "arrival"
 
     def fields(self) -> dict[str, Any]:
         """The gateway's ``timesync`` telemetry: round trip (last, fastest of 16) and offset [s], answers
@@ -59,6 +72,7 @@ class TimeSync:
             "rtt": self.rtt_s,
             "rtt_min": self.rtt_min_s,
             "offset": self.offset_s,
+            "jitter": self.jitter_s,
             "answered": self.answered,
             "autopilot_converged": self.autopilot_converged,
         }
@@ -69,6 +83,8 @@ class TimeSync:
         if msg.tc1 == 0:
             self.answered += 1  # counted first: whoever sees the answer sees it counted
             self.answered_since_reset += 1
+            if self.rtt_s is None or self.rtt_s < PX4_MAX_RTT_S:  # unmeasured yet: as PX4 on loopback
+                self.accepted_since_reset += 1
             self.link.send(self.link.mav.timesync_encode(self.clock_ns(), msg.ts1))
             return
         if msg.ts1 not in self._pending:
@@ -78,7 +94,11 @@ class TimeSync:
         rtt = t_now - msg.ts1
         if rtt < 0:
             return
+        if self._samples:  # RFC 3550's interarrival jitter, over round trips: J += (|D| - J) / 16
+            change = abs(rtt - self._samples[-1][0]) * 1e-9
+            self.jitter_s = change if self.jitter_s is None else self.jitter_s + (change - self.jitter_s) / 16
         self._samples.append((rtt, msg.tc1 - (msg.ts1 + t_now) // 2))
+        self.measured += 1
         best = min(self._samples)
         self.rtt_s = rtt * 1e-9
         self.rtt_min_s = best[0] * 1e-9
@@ -96,4 +116,6 @@ class TimeSync:
         """Forget the measurements (the autopilot rebooted: its clock and its TIMESYNC filter restarted)."""
         self._samples.clear()
         self.offset_s = None
+        self.jitter_s = None
         self.answered_since_reset = 0
+        self.accepted_since_reset = 0

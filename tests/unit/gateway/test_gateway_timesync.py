@@ -16,6 +16,7 @@ from pymavlink.generator.mavcrc import x25crc
 from arena_common.gateway.timesync import PX4_CONVERGENCE_WINDOW, PX4_MAX_RTT_S, TimeSync
 from arena_common.mavlink.link import MSG, MavlinkLink
 from tests.conftest import free_port
+from tests.helpers import wait_for
 from tests.unit.gateway.test_gateway_link import Pump
 
 TIMESYNC_ID = 111
@@ -171,5 +172,54 @@ def test_px4_filter_converges_on_the_answers_and_maps_our_stamps(
         assert abs(stamped - now_us) < 1000, (stamped - now_us, px4)
         ts.reset()  # PX4 rebooted: its filter starts over
         assert not ts.autopilot_converged and ts.answered_since_reset == 0 and ts.answered == seq
+    finally:
+        pump.close()
+
+
+def our_request(sock: socket.socket) -> int:
+    """The ``ts1`` of the gateway's own TIMESYNC request (tc1 0), as PX4 receives it."""
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        data = sock.recv(512)
+        if int.from_bytes(data[7:10], "little") == TIMESYNC_ID:
+            tc1, ts1, _, _ = read_timesync(data)
+            if tc1 == 0:
+                return ts1
+    raise AssertionError("no TIMESYNC request from the gateway")
+
+
+def test_a_slow_link_is_measured_and_px4_then_stamps_on_arrival(
+    px4_socket: tuple[MavlinkLink, socket.socket],
+) -> None:
+    """PX4 answers our requests 15–25 ms late (a radio): the round trip and its jitter are measured, PX4's
+    own requests over that link cannot converge its filter (it drops round trips of 10 ms or more), and
+    the gateway says vision is then stamped on arrival; a fast link again lets the count start."""
+    link, sock = px4_socket
+    ts = TimeSync(link)
+    pump = Pump(link, {MSG["TIMESYNC"]: ts.on_timesync})
+    delays = (0.015, 0.025, 0.015, 0.025, 0.020, 0.015)
+    try:
+        assert ts.stamps == "" and ts.jitter_s is None
+        sock.send(px4_frame(0, 0, 1_000_000_000))  # PX4 speaks first: the link learns where it is
+        answer_to(sock, 1_000_000_000)
+        assert ts.accepted_since_reset == 1  # nothing measured yet: as on loopback
+        for seq, delay in enumerate(delays):
+            ts.request()
+            ts1 = our_request(sock)
+            time.sleep(delay)  # the link's delay, both ways together
+            sock.send(px4_frame(seq, time.time_ns(), ts1))
+            wait_for(lambda n=seq + 1: ts.measured == n, 2.0, 0.002, what=f"answer {seq} measured")
+        assert (
+            ts.rtt_s is not None and ts.rtt_s >= 0.015 and ts.rtt_min_s is not None and ts.rtt_min_s >= 0.015
+        )
+        assert ts.jitter_s is not None and 0.001 < ts.jitter_s < 0.010, ts.jitter_s
+        # PX4's requests: every one answered, none counted as one PX4 could take.
+        for seq in range(PX4_CONVERGENCE_WINDOW + 5):
+            ts1 = 2_000_000_000 + seq
+            sock.send(px4_frame(seq, 0, ts1))
+            answer_to(sock, ts1)
+        assert ts.answered_since_reset == PX4_CONVERGENCE_WINDOW + 6 and ts.accepted_since_reset == 1
+        assert not ts.autopilot_converged and ts.stamps == "arrival"
+        assert ts.fields()["jitter"] == ts.jitter_s and ts.fields()["autopilot_converged"] is False
     finally:
         pump.close()
