@@ -14,6 +14,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from arena_common.bus.exposure import load as load_config
     from arena_common.client import (
         Arena,
         ArenaClock,
@@ -34,7 +35,6 @@ if TYPE_CHECKING:
         Vehicle,
     )
     from arena_common.core.config import ArenaConfig
-    from arena_common.core.config import load as load_config
     from arena_common.core.errors import (
         ArenaError,
         BusError,
@@ -86,7 +86,7 @@ __all__ = [
 _HOMES = {
     **{name: "arena_common.client" for name in __all__ if name not in ("ArenaConfig", "load_config")},
     "ArenaConfig": "arena_common.core.config",
-    "load_config": "arena_common.core.config",
+    "load_config": "arena_common.bus.exposure",  # the config's shape and what it may expose
 }
 _HOMES.update(
     {

@@ -52,8 +52,8 @@ def run_zenoh(
     from arena_common.bus.hosts import host_bus_options
     from arena_common.bus.session import open_bus
     from arena_common.core import keys, wire
-    from arena_common.core.config import load as load_config
     from arena_common.mavlink import fastframe, px4
+    from arena_common.runtime.options import read_config as load_config
 
     cfg = load_config(config)
     spec = cfg.vehicles[vehicle]

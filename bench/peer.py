@@ -42,9 +42,9 @@ from typing import Any
 
 from arena_common.bus.session import Bus, Lane, open_bus
 from arena_common.core import keys, wire
-from arena_common.core.config import load as load_config
 from arena_common.core.errors import ArenaError
 from arena_common.mavlink import fastframe, px4
+from arena_common.runtime.options import read_config as load_config
 from bench.harness import (
     BenchError,
     Collector,

@@ -32,8 +32,8 @@ from typing import Any
 
 from arena_common.bus.session import Bus, open_bus
 from arena_common.core.config import ArenaConfig
-from arena_common.core.config import load as load_config
 from arena_common.mocap import natnet
+from arena_common.runtime.options import read_config as load_config
 from bench.feeds import StatsWatcher, TruthFeeder
 from bench.harness import (
     Child,

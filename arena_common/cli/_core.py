@@ -17,12 +17,9 @@ from arena_common.bus.session import Received
 from arena_common.cli._globals import bus as global_bus
 from arena_common.cli._globals import config as global_config
 from arena_common.cli._globals import current as global_options
-from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.errors import ConfigError
-from arena_common.runtime.options import (
-    HostOpt,
-)
+from arena_common.runtime.options import HostOpt, read_config
 from arena_common.runtime.service import host_name, running, setup_logging
 
 config_app = typer.Typer(help="Check arena config files.", no_args_is_help=True)
@@ -34,7 +31,7 @@ def config_check(files: Annotated[list[Path], typer.Argument(help="Config files 
     failed = False
     for f in files:
         try:
-            cfg = config_mod.load(f)
+            cfg = read_config(f)
             if any(v.stream_rates for v in cfg.vehicles.values()):  # MAVLink names: the dialect, on demand
                 from arena_common.gateway.options import stream_ids
 

@@ -26,12 +26,12 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from arena_common.bus import exposure
 from arena_common.bus.hosts import host_bus_options, host_name
 from arena_common.bus.session import Bus, BusOptions, Channel, Received, open_bus
 from arena_common.client.clock import ArenaClock
 from arena_common.client.swarm import Swarm
 from arena_common.client.vehicle import Vehicle
-from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig, ZenohSpec
 from arena_common.core.errors import VehicleNotPresent
@@ -48,9 +48,10 @@ def _src() -> str:
 class Arena:
     """A connection to the arena's bus.  Use as a context manager (or call :meth:`close`).
 
-    ``config`` is a config file path or :class:`~arena_common.core.config.ArenaConfig` (its Zenoh section
-    says how to reach the bus; its vehicles are the known ones); ``connect`` endpoints override it
-    (``["tcp/192.168.1.20:7447"]``).  ``host`` names this computer in the config (default: the
+    ``config`` is a config file path (read by :func:`arena_common.bus.exposure.load`: its shape and what
+    it may expose to the network, not the PX4 SITL rules) or :class:`~arena_common.core.config.ArenaConfig`
+    (its Zenoh section says how to reach the bus; its vehicles are the known ones); ``connect`` endpoints
+    override it (``["tcp/192.168.1.20:7447"]``).  ``host`` names this computer in the config (default: the
     hostname).  The session is a client of the router unless ``mode`` says otherwise.
     """
 
@@ -65,7 +66,7 @@ class Arena:
         host: str | None = None,
     ) -> None:
         if isinstance(config, (str, Path)):
-            config = config_mod.load(config)
+            config = exposure.load(config)
         self.config = config
         self.src = name or _src()
         self.clock = ArenaClock.for_config(config)

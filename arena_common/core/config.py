@@ -1,40 +1,41 @@
 """The arena configuration: one TOML file describes the room, the mocap, the bus, the hosts and the vehicles.
 
-:func:`load` reads and validates a file into frozen msgspec Structs: each section is one Struct, and a
-field's type, bounds and default are written once, on the field.  Every error names the file, the field
-and what was expected (``deploy/sim.toml: vehicles.d1.system_id: expected an integer >= 1, got 0``).
-``deploy/sim.toml``, ``deploy/px4-sitl.toml`` and ``deploy/lab.example.toml`` are the documented examples.
+The config's shape: each section is one frozen msgspec Struct, a field's type, bounds and default written
+once, on the field.  :func:`load` checks every field (:mod:`arena_common.core.convert`) and the rules
+across fields (distinct system ids, hosts naming configured vehicles...); every error names the file, the
+field and what was expected (``deploy/sim.toml: vehicles.d1.system_id: expected an integer in 1..250,
+got 0``).  ``deploy/sim.toml``, ``deploy/px4-sitl.toml`` and ``deploy/lab.example.toml`` are the examples.
+
+Higher layers own their rules: what may listen beyond loopback (:mod:`arena_common.bus.exposure`), what a
+PX4 SITL instance implies (:mod:`arena_common.runtime.px4_sitl_rules`).  Programs load through a loader
+that applies them: :func:`arena_common.runtime.options.read_config` (every arena process and command),
+:func:`arena_common.bus.exposure.load` (the user's client).
 
 Each vehicle says what flies it (``autopilot``): ``"sim"`` (default; the arena's simulated autopilot, run
 by the host service ``sim``), ``"px4"`` (an external PX4: hardware, or a SITL started by hand; nothing is
-started for it) or ``"px4-sitl"`` with ``px4_instance = N`` (0..9; ``arena up`` starts PX4 SITL instance N
-and its truth bridge next to the vehicle's gateway; ``mavlink`` defaults to ``udpin:127.0.0.1:<14540+N>``
-and ``system_id`` to N+1, and must agree with them when given; ``px4_params`` adds boot parameters).
+started for it) or ``"px4-sitl"`` with ``px4_instance = N`` (``arena up`` starts PX4 SITL instance N and
+its truth bridge next to the vehicle's gateway; its ``mavlink`` and ``system_id`` follow from N, and
+``px4_params`` adds boot parameters).
 """
 
 from __future__ import annotations
 
-import ipaddress
-import re
 import socket
 import tomllib
-import types
-import typing
 from pathlib import Path
-from typing import Annotated, Any, Literal, Self, get_args, get_origin
+from typing import Annotated, Any, Literal, Self, get_args
 
 import msgspec
 from msgspec import Meta
 
 from arena_common.core import keys
-from arena_common.core.endpoints import endpoint_host, is_loopback, mirror_connection, udp_listen_port
+from arena_common.core.convert import convert, field_error
+from arena_common.core.endpoints import mirror_connection, udp_listen_port
 from arena_common.core.errors import ConfigError, InvalidName
 from arena_common.core.services import VEHICLE_SERVICES, HostService, VehicleService
 
 ZenohMode = Literal["peer", "client", "router"]
 ZENOH_MODES: tuple[ZenohMode, ...] = get_args(ZenohMode)
-PX4_SITL_MAX_INSTANCE = 9  # instance 10 would send its offboard link to 14550, the ground stations' port
-PX4_SITL_OFFBOARD_PORT = 14540  # + instance: where PX4 SITL sends its offboard link
 
 
 class Spec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
@@ -123,7 +124,13 @@ class SimVehicleSpec(Spec, frozen=True):
     mavlink: str = ""  # the simulated autopilot's side; derived from the gateway's string when empty
 
 
-Px4ParamName = Annotated[str, Meta(pattern=r"^[A-Z][A-Z0-9_]{0,15}$")]
+Px4ParamName = Annotated[
+    str,
+    Meta(
+        pattern=r"^[A-Z][A-Z0-9_]{0,15}$",
+        description="PX4 parameter names (capitals, digits, _; up to 16 characters)",
+    ),
+]
 MavlinkName = Annotated[str, Meta(pattern=r"^[A-Z][A-Z0-9_]{0,49}$")]
 
 
@@ -137,9 +144,8 @@ class VehicleSpec(Spec, frozen=True):
     # (and counts) datagrams from any other; without it, it replies to whoever last sent the vehicle's
     # frames (on an unsigned link, anyone on the network: docs/safety.md §3.3).
     mavlink_peer: str = ""
-    system_id: Annotated[int, Meta(ge=1, le=250)] = (
-        0  # MAV_SYS_ID, never 0; required unless a PX4 SITL instance implies it
-    )
+    # MAV_SYS_ID, never 0 (0: left out); required unless a PX4 SITL instance implies it
+    system_id: Annotated[int, Meta(ge=1, le=250)] = 0
     vision_rate: Annotated[float, Meta(ge=1.0, le=400.0)] = 50.0
     max_pose_age: Annotated[float, Meta(ge=0.001, le=1.0)] = 0.1
     vision_message: Literal["odometry", "vision_position_estimate"] = "odometry"
@@ -161,7 +167,7 @@ class VehicleSpec(Spec, frozen=True):
     # external PX4: hardware, or a SITL started by hand; nothing is started for it) or "px4-sitl" (PX4
     # SITL instance ``px4_instance``, started by ``arena up`` with its ground-truth bridge).
     autopilot: Literal["sim", "px4", "px4-sitl"] = "sim"
-    px4_instance: Annotated[int, Meta(ge=0, le=PX4_SITL_MAX_INSTANCE)] | None = None
+    px4_instance: int | None = None  # its range: runtime.px4_sitl_rules
     px4_params: dict[Px4ParamName, float] = msgspec.field(default_factory=dict)  # PX4 SITL boot parameters
 
     @property
@@ -190,9 +196,8 @@ class SimSpec(Spec, frozen=True):
     noise_m: Annotated[float, Meta(ge=0.0, le=0.1)] = 0.0002
     dropout: Annotated[float, Meta(ge=0.0, le=1.0)] = 0.0
     seed: int = 0
-    px4_params: Literal["arena", "px4"] = (
-        "arena"  # "arena": vehicles set up for the arena; "px4": PX4's defaults
-    )
+    # "arena": vehicles set up for the arena; "px4": PX4's defaults
+    px4_params: Literal["arena", "px4"] = "arena"
     # "px4": simulated vehicles take off, hold and wander as PX4 v1.16 SITL was measured to (docs/px4.md);
     # "ideal": they climb at once, hold exactly and estimate their pose without error.
     fidelity: Literal["px4", "ideal"] = "px4"
@@ -308,352 +313,111 @@ class ArenaConfig(Spec, frozen=True):
 
 
 # --------------------------------------------------------------------------------------------------
-# Reading: msgspec checks types, bounds and unknown fields; the rules across fields follow.
+# Reading: each field checked on its own (core.convert), then the rules across fields.
 # --------------------------------------------------------------------------------------------------
 
-_KINDS = {
-    "int": "an integer",
-    "float": "a number",
-    "str": "a string",
-    "bool": "true or false",
-    "array": "a list",
-    "object": "a table",
-}
-_AT = re.compile(r" - at (`key` in )?`\$([^`]*)`$")
 
-
-def _fail(path: str, where: str, expected: str, got: Any = ...) -> ConfigError:
-    tail = "" if got is ... else f", got {got!r}"
-    return ConfigError(f"{path}: {where}: expected {expected}{tail}")
-
-
-def _field_type(cls: Any, names: list[str]) -> Any:
-    """The annotation (with its ``Annotated`` bounds) at a dotted path below Struct ``cls``; None if unknown."""
-    t: Any = cls
-    for name in names:
-        t = _bare(t)
-        if isinstance(t, type) and issubclass(t, msgspec.Struct):
-            t = typing.get_type_hints(t, include_extras=True).get(name)
-        elif get_origin(t) is dict:
-            t = get_args(t)[1]
-        else:
-            return None
-    return t
-
-
-def _bare(t: Any) -> Any:
-    """``t`` without ``Annotated`` and without ``| None``."""
-    while True:
-        if get_origin(t) is Annotated:
-            t = get_args(t)[0]
-        elif isinstance(t, types.UnionType) or get_origin(t) is typing.Union:
-            t = next(a for a in get_args(t) if a is not type(None))
-        else:
-            return t
-
-
-def _expected(t: Any) -> str | None:
-    """What a field of type ``t`` wants, in words (None when it cannot be said simply)."""
-    meta = next((m for m in get_args(t) if isinstance(m, Meta)), None) if get_origin(t) is Annotated else None
-    if meta is None and (isinstance(t, types.UnionType) or get_origin(t) is typing.Union):
-        return _expected(next(a for a in get_args(t) if a is not type(None)))
-    bare = _bare(t)
-    if get_origin(bare) is Literal:
-        return "one of " + ", ".join(str(a) for a in get_args(bare))
-    if get_origin(bare) is tuple:
-        args = get_args(bare)
-        if args and args[-1] is not Ellipsis and all(a is float for a in args):
-            return f"a list of {len(args)} numbers"
-        if len(args) == 2 and args[1] is Ellipsis:
-            if get_origin(args[0]) is Literal:
-                return "names among " + ", ".join(str(a) for a in get_args(args[0]))
-            return "a list of strings" if args[0] is str else None
-    kind = {
-        int: "an integer",
-        float: "a number",
-        str: "a string",
-        bool: "true or false",
-        dict: "a table",
-    }.get(get_origin(bare) or bare)
-    if kind and meta is not None and meta.ge is not None and meta.le is not None:
-        return f"{kind} in {meta.ge}..{meta.le}"
-    if kind and meta is not None and meta.pattern is not None:
-        return f"{kind} matching {meta.pattern}"
-    return kind
-
-
-def _convert(cls: type[Any], data: Any, path: str, prefix: str) -> Any:
-    """``data`` as ``cls``, or a :class:`ConfigError` naming the file, the dotted field, what was expected
-    and the value given."""
-    try:
-        return msgspec.convert(data, cls)
-    except msgspec.ValidationError as exc:
-        text = str(exc)
-        m = _AT.search(text)
-        names = [] if m is None else re.findall(r"\.([^.\[]+)", re.sub(r"\[[^\]]*\]", "", m.group(2)))
-        is_key = m is not None and m.group(1) is not None
-        text = text if m is None else text[: m.start()]
-        got: Any = data
-        for n in names:
-            got = got.get(n, ...) if isinstance(got, dict) else ...
-        if unknown := re.fullmatch(r"Object contains unknown field `(.+)`", text):
-            where = ".".join([prefix, *names, unknown.group(1)] if prefix else [*names, unknown.group(1)])
-            raise ConfigError(f"{path}: {where}: unknown field") from None
-        t = _field_type(cls, names)
-        if is_key and isinstance(got, dict):  # a table's key is wrong (e.g. a PX4 parameter name)
-            key_type = get_args(_bare(t))[0] if get_origin(_bare(t)) is dict else None
-            names_wanted = "PX4 parameter names (capitals, digits, _; up to 16 characters)"
-            if key_type is not None and key_type is not Px4ParamName:
-                names_wanted = _expected(key_type) or "valid names"
-            bad = next(
-                (k for k in got if not isinstance(k, str) or not re.fullmatch(r"[A-Z][A-Z0-9_]{0,15}", k)),
-                got,
-            )
-            raise _fail(path, ".".join([prefix, *names]), names_wanted, bad) from None
-        if (
-            m is not None and m.group(2).endswith("[...]") and isinstance(got, dict)
-        ):  # a table's value is wrong
-            value_type = get_args(_bare(t))[1] if get_origin(_bare(t)) is dict else None
-            for key, value in got.items():
-                try:
-                    msgspec.convert(value, value_type)
-                except msgspec.ValidationError:
-                    wanted = _expected(value_type) or text[:1].lower() + text[1:]
-                    raise _fail(path, ".".join([prefix, *names, str(key)]), wanted, value) from None
-        where = ".".join([prefix, *names] if prefix else names) or "(top level)"
-        expected = _expected(t) if t is not None else None
-        if expected is None:
-            kind = re.match(r"Expected `([^`]+)`(.*?)(?:, got .*)?$", text)
-            expected = text[:1].lower() + text[1:]
-            if kind is not None:
-                words = [_KINDS.get(k, k) for k in kind.group(1).split(" | ") if k != "null"]
-                expected = " or ".join(words) + kind.group(2).replace("`", "")
-        if isinstance(got, list) and expected.startswith("names among "):
-            choices = expected[len("names among ") :].split(", ")
-            got = next((g for g in got if g not in choices), got)
-        raise _fail(path, where, expected, got) from None
-
-
-def _named(path: str, section: str, data: Any) -> dict[str, Any]:
+def _named(path: str, section: str, data: Any) -> dict[str, dict[str, Any]]:
+    """A table of named tables (``vehicles``, ``hosts``), each name valid in a key expression."""
     if not isinstance(data, dict):
-        raise _fail(path, section, "a table of named tables", data)
+        raise field_error(path, section, "a table of named tables", data)
     for name in data:
         try:
             keys.validate_name(name, f"{section[:-1]} name")
         except InvalidName as exc:
             raise ConfigError(f"{path}: {section}.{name}: {exc}") from None
+    for name, table in data.items():
+        if not isinstance(table, dict):
+            raise field_error(path, f"{section}.{name}", "a table", table)
     return data
 
 
-def _vehicle(path: str, name: str, table: Any) -> VehicleSpec:
-    """One vehicle: a PX4 SITL vehicle's link and id follow from its instance (and must agree with it)."""
+def _vehicle(path: str, name: str, table: dict[str, Any]) -> VehicleSpec:
+    """One vehicle.  A PX4 SITL vehicle's link and id may be left out: its instance implies them
+    (:mod:`arena_common.runtime.px4_sitl_rules` fills them in)."""
     where = f"vehicles.{name}"
-    if not isinstance(table, dict):
-        raise _fail(path, where, "a table", table)
-    v: VehicleSpec = _convert(VehicleSpec, {"name": name, **table}, path, where)
-    fix: dict[str, Any] = {} if v.rigid_body != "" else {"rigid_body": name}
+    v = convert(VehicleSpec, {"name": name, **table}, path, where)
     if v.sim.mavlink and v.autopilot != "sim":
-        raise _fail(
+        raise field_error(
             path,
             f"{where}.sim.mavlink",
             f'no simulated side unless autopilot = "sim" (got {v.autopilot!r})',
             v.sim.mavlink,
         )
-    if v.autopilot != "px4-sitl":
-        for key in ("px4_instance", "px4_params"):
-            if key in table:
-                raise _fail(
-                    path, f"{where}.{key}", f'no {key} unless autopilot = "px4-sitl" (got {v.autopilot!r})'
-                )
-    else:
-        if v.px4_instance is None:
-            raise _fail(
-                path,
-                f"{where}.px4_instance",
-                f'the PX4 SITL instance number (0..{PX4_SITL_MAX_INSTANCE}) of a "px4-sitl" vehicle',
-            )
-        n = v.px4_instance
-        port = PX4_SITL_OFFBOARD_PORT + n
-        expected = f"udpin:127.0.0.1:{port}"
-        if not v.mavlink:
-            fix["mavlink"] = expected
-        else:
-            scheme, _, rest = v.mavlink.partition(":")
-            host, _, port_s = rest.rpartition(":")
-            if (
-                scheme not in ("udpin", "udp")
-                or host not in ("127.0.0.1", "localhost", "0.0.0.0")
-                or port_s != str(port)
-            ):
-                raise _fail(
-                    path,
-                    f"{where}.mavlink",
-                    f"{expected} for PX4 SITL instance {n} (px4_instance; or leave mavlink out)",
-                    v.mavlink,
-                )
-        if "system_id" not in table:
-            fix["system_id"] = n + 1
-        elif v.system_id != n + 1:
-            raise _fail(
-                path,
-                f"{where}.system_id",
-                f"{n + 1}, the MAV_SYS_ID of PX4 SITL instance {n} (or leave it out)",
-                v.system_id,
-            )
-    if not v.mavlink and "mavlink" not in fix:
-        raise _fail(
+    if not v.mavlink and not v.px4_sitl:
+        raise field_error(
             path,
             f"{where}.mavlink",
             "a pymavlink connection string (udpin:HOST:PORT, tcp:HOST:PORT, /dev/tty…)",
         )
-    if "system_id" not in table and "system_id" not in fix:
-        raise _fail(path, f"{where}.system_id", "an integer in 1..250 (MAV_SYS_ID; never 0)")
-    if v.mavlink_peer:
-        _check_peer(path, where, v, fix.get("mavlink", v.mavlink))
-    return v.replace(**fix) if fix else v
+    if not v.system_id and not v.px4_sitl:
+        raise field_error(path, f"{where}.system_id", "an integer in 1..250 (MAV_SYS_ID; never 0)")
+    return v if v.rigid_body != "" else v.replace(rigid_body=name)
 
 
-def _check_peer(path: str, where: str, v: VehicleSpec, mavlink: str) -> None:
-    """``mavlink_peer``: one host's IPv4 address and a port, on a listening UDP link to a real autopilot."""
-    host, _, port = v.mavlink_peer.rpartition(":")
-    try:
-        ip = ipaddress.IPv4Address(host)
-    except ValueError:
-        ip = None
-    if (
-        ip is None
-        or ip.is_unspecified
-        or ip.is_multicast
-        or ip == ipaddress.IPv4Address("255.255.255.255")
-        or not re.fullmatch(r"[0-9]{1,5}", port, re.ASCII)
-        or not 0 < int(port) < 65536
-    ):
-        raise _fail(
-            path,
-            f"{where}.mavlink_peer",
-            "the autopilot's IPv4 address and UDP port, IP:PORT (e.g. 192.168.1.31:14550)",
-            v.mavlink_peer,
-        )
-    if mavlink.partition(":")[0] not in ("udpin", "udp"):
-        raise _fail(
-            path,
-            f"{where}.mavlink_peer",
-            f"no mavlink_peer unless mavlink is udpin:HOST:PORT (got {mavlink!r})",
-            v.mavlink_peer,
-        )
-    if v.autopilot == "sim":
-        raise _fail(
-            path,
-            f"{where}.mavlink_peer",
-            'no mavlink_peer with autopilot = "sim" (the simulated autopilot sends from any port)',
-            v.mavlink_peer,
-        )
+def check_distinct(cfg: ArenaConfig, field: str, what: str, unset: object) -> None:
+    """No two vehicles with the same ``field`` (``unset``: left out, clashes with nothing); the error names
+    the later vehicle's field: ``expected <what> not used by <the earlier vehicle>``."""
+    first: dict[object, str] = {}
+    for name, v in cfg.vehicles.items():
+        value = getattr(v, field)
+        if value in first:
+            raise field_error(
+                cfg.path, f"vehicles.{name}.{field}", f"{what} not used by {first[value]}", value
+            )
+        if value != unset:
+            first[value] = name
 
 
-_INSECURE = "enable [security] (arena security init) or, knowingly, set security.insecure = true"
+def check_links(cfg: ArenaConfig) -> None:
+    """Every vehicle's system id its own, and on each host every gateway on a UDP port of its own.
 
-
-def _check_exposure(
-    path: str,
-    zenoh: ZenohSpec,
-    hosts: dict[str, HostSpec],
-    vehicles: dict[str, VehicleSpec],
-    *,
-    zenoh_too: bool,
-) -> None:
-    """Nothing listens beyond loopback unauthenticated unless the config says ``insecure``.
-
-    Zenoh endpoints (``zenoh_too``: without ``[security]``) and MAVLink links that listen on the network
-    without signing or a pinned peer (``mavlink_peer``).
+    An id or link left out (a PX4 SITL vehicle's, until :func:`arena_common.runtime.px4_sitl_rules.apply`
+    derives them and runs this check again) takes no part.
     """
-    for field_name, endpoints in (("router_listen", zenoh.router_listen), ("listen", zenoh.listen)):
-        for e in endpoints:
-            if zenoh_too and not is_loopback(endpoint_host(e)):
-                raise _fail(path, f"zenoh.{field_name}", f"loopback endpoints only: {_INSECURE}", e)
-    for name, h in hosts.items():
-        if (
-            zenoh_too
-            and h.address
-            and not is_loopback(h.address)
-            and zenoh.mode == "peer"
-            and not zenoh.listen
-        ):
-            raise _fail(
-                path,
-                f"hosts.{name}.address",
-                f"no address to listen on without authentication (its peers would): {_INSECURE}",
-                h.address,
-            )
-    for name, v in vehicles.items():
-        scheme = v.mavlink.partition(":")[0]
-        listens = scheme in ("udpin", "tcpin", "udp") and not is_loopback(endpoint_host(v.mavlink))
-        gcs_scheme = v.gcs.partition(":")[0]
-        if gcs_scheme in ("udpin", "tcpin", "udp") and not is_loopback(endpoint_host(v.gcs)):
-            raise _fail(
-                path,
-                f"vehicles.{name}.gcs",
-                "a ground-station link on loopback only (it forwards whatever it receives to the vehicle, "
-                "unauthenticated): use udpout:GCS_IP:PORT, or, knowingly, set security.insecure = true",
-                v.gcs,
-            )
-        if listens and not v.signing_key_file and not v.mavlink_peer:
-            raise _fail(
-                path,
-                f"vehicles.{name}.mavlink",
-                f"an unsigned MAVLink link listening on loopback only: sign it (vehicles.{name}."
-                f"signing_key_file), pin the autopilot's address (vehicles.{name}.mavlink_peer) or, "
-                "knowingly, set security.insecure = true",
-                v.mavlink,
-            )
+    check_distinct(cfg, "system_id", "a system id", unset=0)
+    for hname, host in cfg.hosts.items():
+        listening: dict[int, str] = {}
+        for vname in host.vehicles:
+            port = udp_listen_port(cfg.vehicles[vname].mavlink)
+            if port is None:
+                continue
+            if port in listening:
+                raise field_error(
+                    cfg.path,
+                    f"hosts.{hname}.vehicles",
+                    f"vehicles whose gateways listen on distinct UDP ports ({listening[port]} and {vname}"
+                    f" both use {port} on this host)",
+                    list(host.vehicles),
+                )
+            listening[port] = vname
 
 
-_SECTIONS = {
-    "arena": ArenaSpec,
-    "calibration": CalibrationSpec,
-    "mocap": MocapSpec,
-    "zenoh": ZenohSpec,
-    "sim": SimSpec,
-    "recorder": RecorderSpec,
-    "security": SecuritySpec,
-    "pipeline": PipelineSpec,
-    "clock": ClockSpec,
+#: The sections of one table each: every field of ArenaConfig but its path and its named tables.
+_SECTIONS: dict[str, type[Spec]] = {
+    f.name: f.type for f in msgspec.structs.fields(ArenaConfig) if f.name not in ("path", "hosts", "vehicles")
 }
 
 
 def parse(data: dict[str, Any], path: str = "<config>") -> ArenaConfig:
-    """Validate a parsed TOML document into an :class:`ArenaConfig`."""
+    """Check a parsed TOML document's shape and cross-field rules into an :class:`ArenaConfig`.
+
+    Neither the PX4 SITL rules nor the network exposure's: programs use a loader that adds them
+    (:func:`arena_common.runtime.options.parse_config`, :func:`arena_common.bus.exposure.parse`).
+    """
     unknown = sorted(set(data) - set(_SECTIONS) - {"vehicles", "hosts"})
     if unknown:
         raise ConfigError(f"{path}: {unknown[0]}: unknown field")
-    sections = {name: _convert(cls, data.get(name, {}), path, name) for name, cls in _SECTIONS.items()}
+    sections: dict[str, Any] = {n: convert(cls, data.get(n, {}), path, n) for n, cls in _SECTIONS.items()}
     arena: ArenaSpec = sections["arena"]
     if min(arena.size) <= 2 * arena.margin:
-        raise _fail(path, "arena.size", "every dimension larger than twice the margin", list(arena.size))
+        raise field_error(
+            path, "arena.size", "every dimension larger than twice the margin", list(arena.size)
+        )
     pipeline: PipelineSpec = sections["pipeline"]
-
-    vehicles: dict[str, VehicleSpec] = {}
-    ids: dict[int, str] = {}
-    instances: dict[int, str] = {}
-    for vname, table in _named(path, "vehicles", data.get("vehicles", {})).items():
-        v = _vehicle(path, vname, table)
-        if v.px4_instance is not None:
-            if v.px4_instance in instances:
-                raise _fail(
-                    path,
-                    f"vehicles.{vname}.px4_instance",
-                    f"a PX4 SITL instance not used by {instances[v.px4_instance]}",
-                    v.px4_instance,
-                )
-            instances[v.px4_instance] = vname
-        if v.system_id in ids:
-            raise _fail(
-                path,
-                f"vehicles.{vname}.system_id",
-                f"a system id not used by {ids[v.system_id]}",
-                v.system_id,
-            )
-        ids[v.system_id] = vname
-        vehicles[vname] = v
+    vehicles = {
+        n: _vehicle(path, n, t) for n, t in _named(path, "vehicles", data.get("vehicles", {})).items()
+    }
 
     # With the transform decimating, no host runs per-vehicle downsamplers.
     default_vehicle_services = [
@@ -662,56 +426,42 @@ def parse(data: dict[str, Any], path: str = "<config>") -> ArenaConfig:
     hosts: dict[str, HostSpec] = {}
     for hname, table in _named(path, "hosts", data.get("hosts", {})).items():
         where = f"hosts.{hname}"
-        if not isinstance(table, dict):
-            raise _fail(path, where, "a table", table)
-        host: HostSpec = _convert(
+        host = convert(
             HostSpec, {"name": hname, "vehicle_services": default_vehicle_services, **table}, path, where
         )
         if pipeline.decimate == "transform" and "downsampler" in host.vehicle_services:
-            raise _fail(
+            raise field_error(
                 path,
                 f"{where}.vehicle_services",
                 'no "downsampler" while pipeline.decimate = "transform" (the transform decimates)',
                 list(host.vehicle_services),
             )
-        listening: dict[int, str] = {}
         for vname in host.vehicles:
             if vname not in vehicles:
-                raise _fail(
+                raise field_error(
                     path,
                     f"{where}.vehicles",
                     f"names of configured vehicles ({', '.join(vehicles) or 'none'})",
                     vname,
                 )
-            port = udp_listen_port(vehicles[vname].mavlink)
-            if port is not None and port in listening:
-                raise _fail(
-                    path,
-                    f"{where}.vehicles",
-                    f"vehicles whose gateways listen on distinct UDP ports ({listening[port]} and {vname}"
-                    f" both use {port} on this host)",
-                    list(host.vehicles),
-                )
-            if port is not None:
-                listening[port] = vname
         hosts[hname] = host
 
     security: SecuritySpec = sections["security"]
-    if not security.insecure:
-        _check_exposure(path, sections["zenoh"], hosts, vehicles, zenoh_too=not security.enabled)
     for cmd_host in security.command_hosts:
         if cmd_host not in hosts:
-            raise _fail(
+            raise field_error(
                 path,
                 "security.command_hosts",
                 f"names of configured hosts ({', '.join(hosts) or 'none'})",
                 cmd_host,
             )
-    return ArenaConfig(path=path, hosts=hosts, vehicles=vehicles, **sections)
+    cfg = ArenaConfig(path=path, hosts=hosts, vehicles=vehicles, **sections)
+    check_links(cfg)
+    return cfg
 
 
 def load(path: str | Path) -> ArenaConfig:
-    """Read and validate a TOML config file."""
+    """Read a TOML config file and check it as :func:`parse` does."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")

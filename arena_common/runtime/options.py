@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Annotated, Literal, overload
+from typing import Annotated, Any, Literal, overload
 
 import typer
 
+from arena_common.bus.exposure import check_exposure
 from arena_common.bus.session import BusOptions
 from arena_common.core import config as config_mod
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
+from arena_common.runtime import px4_sitl_rules
 
 DEFAULT_CONFIG = "deploy/sim.toml"
 
@@ -77,17 +79,39 @@ def chosen_config(argument: Path | str | None, option: Path | str | None) -> Pat
     return Path(chosen) if chosen else None
 
 
+def read_config(path: Path | str) -> ArenaConfig:
+    """Read a config file and check it by every rule: the one loader of the arena's processes and commands.
+
+    The config's shape and the rules across its fields (:func:`arena_common.core.config.load`), each PX4
+    SITL vehicle's instance (:func:`arena_common.runtime.px4_sitl_rules.apply`, which fills in its link
+    and system id), then what it may expose to the network
+    (:func:`arena_common.bus.exposure.check_exposure`).  :class:`ConfigError` naming the file and the field.
+    """
+    return _checked(config_mod.load(path))
+
+
+def parse_config(data: dict[str, Any], path: str = "<config>") -> ArenaConfig:
+    """A parsed TOML document checked as :func:`read_config` checks a file."""
+    return _checked(config_mod.parse(data, path))
+
+
+def _checked(cfg: ArenaConfig) -> ArenaConfig:
+    cfg = px4_sitl_rules.apply(cfg)
+    check_exposure(cfg)
+    return cfg
+
+
 @overload
 def load_config(path: Path | str | None, required: Literal[True] = True) -> ArenaConfig: ...
 @overload
 def load_config(path: Path | str | None, required: bool) -> ArenaConfig | None: ...
 def load_config(path: Path | str | None, required: bool = True) -> ArenaConfig | None:
-    """Load the config or exit with its error on stderr (status 2).  ``required=False`` tolerates absence."""
+    """:func:`read_config`, or exit with its error on stderr (status 2); ``required=False`` tolerates absence."""
     p = config_path(path)
     if not required and path is None and not p.exists():
         return None
     try:
-        return config_mod.load(p)
+        return read_config(p)
     except ConfigError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None

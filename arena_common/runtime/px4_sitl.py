@@ -15,10 +15,9 @@ they win over values saved before a reboot.  The build's ``bin/px4-*`` helpers a
 which makes ``run.sh`` fail with "px4-param: Permission denied" — so each instance gets its own private
 directory of links, to the real file when it is one and to ``bin/px4`` otherwise.
 
-Ports of instance *i* (:func:`ports`), all on 127.0.0.1: the offboard (API) link listens on 14580+i and
-sends to 14540+i (a gateway uses ``udpin:127.0.0.1:<14540+i>``), the ground-station link listens on
-18570+i and sends to 14550, SIH's ground truth (HIL_STATE_QUATERNION, 25 Hz unless asked otherwise) goes
-from 19450+i to 19410+i; MAV_SYS_ID is i+1.  PX4 latches the first peer address of each link.
+The ports and system id of instance *i* (:func:`~arena_common.runtime.px4_sitl_rules.ports`) and the
+config rules of a ``"px4-sitl"`` vehicle are in :mod:`arena_common.runtime.px4_sitl_rules`; SIH's ground
+truth comes at 25 Hz unless asked otherwise.  PX4 latches the first peer address of each link.
 """
 
 from __future__ import annotations
@@ -37,76 +36,31 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from arena_common.core.config import ArenaConfig, VehicleSpec
-from arena_common.core.errors import ArenaError, ConfigError
+from arena_common.core.errors import ConfigError
 from arena_common.mavlink import px4
 from arena_common.mavlink.metadata import MetadataError, load_parameters_json
 from arena_common.runtime.process import child_setup
+from arena_common.runtime.px4_sitl_rules import MAX_INSTANCE as MAX_INSTANCE  # the launcher's names too
+from arena_common.runtime.px4_sitl_rules import Ports as Ports
+from arena_common.runtime.px4_sitl_rules import Px4SitlError as Px4SitlError
+from arena_common.runtime.px4_sitl_rules import check_instance, ports
 
 ENV_DIR = "PX4_SITL_DIR"
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_DIR = REPO.parent / "shared" / "px4-sitl"
 DEFAULT_MODEL = "sihsim_quadx"
-MAX_INSTANCE = 9  # instance 10 would send its offboard link to 14550, the ground stations' port
 READY_LINES = ("Startup script returned successfully", "Ready for takeoff")
 LOCK_FILE = "/tmp/px4_lock-{n}"  # PX4 holds a POSIX record lock on it while instance n runs
 #: SIH's home when no parameter moves it (this build's parameters.json defaults).
 SIH_HOME_DEFAULT = (47.397742, 8.545594, 489.4)
 
 ListenerValue = bool | int | float | str | list[float]
-
-
-class Px4SitlError(ArenaError):
-    """No PX4 build, an instance that cannot start or stop, a listener that cannot answer."""
-
-
-@dataclass(frozen=True, slots=True)
-class Ports:
-    """The loopback UDP ports and system id of one PX4 SITL instance."""
-
-    instance: int
-    offboard: int  # where PX4 sends its offboard (API) link: the gateway listens here
-    px4_offboard: int  # where PX4 listens for it
-    gcs: int  # where PX4 sends its ground-station link (every instance)
-    px4_gcs: int
-    truth: int  # where SIH's HIL_STATE_QUATERNION goes: the truth bridge listens here
-    px4_truth: int
-    system_id: int
-
-    def gateway_mavlink(self) -> str:
-        """The gateway's connection string for this instance."""
-        return f"udpin:127.0.0.1:{self.offboard}"
-
-
-def ports(instance: int) -> Ports:
-    """The ports of instance ``instance`` (0..:data:`MAX_INSTANCE`)."""
-    check_instance(instance)
-    return Ports(
-        instance=instance,
-        offboard=14540 + instance,
-        px4_offboard=14580 + instance,
-        gcs=14550,
-        px4_gcs=18570 + instance,
-        truth=19410 + instance,
-        px4_truth=19450 + instance,
-        system_id=instance + 1,
-    )
-
-
-def check_instance(instance: int) -> int:
-    """``instance`` if within 0..:data:`MAX_INSTANCE`, else :class:`Px4SitlError`."""
-    if isinstance(instance, bool) or not isinstance(instance, int) or not 0 <= instance <= MAX_INSTANCE:
-        raise Px4SitlError(
-            f"PX4 SITL instance must be an integer in 0..{MAX_INSTANCE} (instance 10 and above would send "
-            f"its offboard link to 14550, the ground stations' port), got {instance!r}"
-        )
-    return instance
 
 
 # -- the build ----------------------------------------------------------------------------------------

@@ -27,10 +27,10 @@ from typing import IO
 import numpy as np
 
 from arena_common import Arena
-from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.geometry.frames import quat_yaw, wrap_angle
+from arena_common.runtime.options import read_config
 from arena_common.runtime.process import child_setup
 from arena_common.runtime.px4_sitl import MAX_INSTANCE, Px4Sitl, Px4SitlError, instance_busy
 from services.px4_sitl import boot_params
@@ -125,7 +125,7 @@ def write_px4_config(
             lines.append("px4_params = { " + ", ".join(f"{k} = {v!r}" for k, v in params.items()) + " }")
     lines.append(extra)
     path.write_text("\n".join(lines) + "\n")
-    return config_mod.load(path)
+    return read_config(path)
 
 
 @dataclass

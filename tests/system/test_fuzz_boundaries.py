@@ -59,6 +59,7 @@ from arena_common.core.errors import ConfigError
 from arena_common.core.wire import Spec
 from arena_common.mavlink.link import mavlink2
 from arena_common.mocap import natnet
+from arena_common.runtime.options import parse_config, read_config
 from arena_common.sim.natnet_server import TickClock, load_recording
 from tests.faultlib import (
     ServiceThread,
@@ -1097,7 +1098,7 @@ def test_config_mutations_raise_only_config_error(text: str) -> None:
         path = Path(d) / "arena.toml"
         path.write_text(text)
         try:
-            cfg = config_mod.load(path)
+            cfg = read_config(path)
         except ConfigError as exc:
             assert str(path) in str(exc), exc  # the message names the file
             return
@@ -1138,7 +1139,7 @@ def mutated_tree(draw: st.DrawFn) -> dict[str, Any]:
 @given(data=mutated_tree())
 def test_config_tree_mutations_raise_only_config_error(data: dict[str, Any]) -> None:
     try:
-        cfg = config_mod.parse(data, "fuzz.toml")
+        cfg = parse_config(data, "fuzz.toml")
     except ConfigError as exc:
         assert str(exc).startswith("fuzz.toml: "), exc
         return

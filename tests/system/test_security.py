@@ -29,6 +29,7 @@ from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig, ZenohSpec
 from arena_common.core.errors import BusError
+from arena_common.runtime.options import read_config
 from tests.helpers import free_port, wait_for
 
 pytestmark = pytest.mark.system
@@ -56,7 +57,7 @@ system_id = 2
 def lab(tmp_path: Path, endpoint: str, extra: str = "") -> ArenaConfig:
     path = tmp_path / "lab.toml"
     path.write_text(LAB.format(ep=endpoint) + extra)
-    return config_mod.load(path)
+    return read_config(path)
 
 
 def test_owners_and_rules(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from arena_common.bus import pki, security
+from arena_common.bus import exposure, pki, security
 from arena_common.bus.hosts import host_bus_options
 from arena_common.bus.session import BusOptions
 from arena_common.core import config as config_mod
@@ -48,7 +48,7 @@ def parse(listen: str = "tcp/127.0.0.1:7447", address: str = "", mavlink: str = 
     import tomllib
 
     text = OPEN.format(listen=listen, address=address, mavlink=mavlink, extra=extra)
-    return config_mod.parse(tomllib.loads(text), "lab.toml")
+    return exposure.parse(tomllib.loads(text), "lab.toml")
 
 
 def test_nothing_listens_beyond_loopback_unauthenticated_unless_the_config_says_insecure() -> None:

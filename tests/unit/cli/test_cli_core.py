@@ -43,6 +43,20 @@ def test_config_check_ok_and_errors(tmp_path: Path) -> None:
     assert f"{streams}: vehicles.d1.stream_rates: no MAVLink message named 'ATTITUDES'" in res.output
 
 
+def test_config_check_applies_the_px4_sitl_and_exposure_rules(tmp_path: Path) -> None:
+    assert runner.invoke(app, ["config", "check", str(REPO / "deploy/px4-sitl.toml")]).exit_code == 0
+    sitl = tmp_path / "sitl.toml"
+    sitl.write_text('[vehicles.d1]\nautopilot = "px4-sitl"\npx4_instance = 3\nsystem_id = 3\n')
+    res = runner.invoke(app, ["config", "check", str(sitl)])
+    assert res.exit_code == 2
+    assert f"{sitl}: vehicles.d1.system_id: expected 4, the MAV_SYS_ID of PX4 SITL instance 3" in res.output
+    exposed = tmp_path / "exposed.toml"
+    exposed.write_text('[zenoh]\nrouter_listen = ["tcp/0.0.0.0:7447"]\n')
+    res = runner.invoke(app, ["config", "check", str(exposed)])
+    assert res.exit_code == 2
+    assert f"{exposed}: zenoh.router_listen: expected loopback endpoints only" in res.output
+
+
 def test_router_and_echo_across_processes(processes: Callable[..., Proc]) -> None:
     """`arena router`, then `arena echo 'arena/**' --json` prints a pose published by another process."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"

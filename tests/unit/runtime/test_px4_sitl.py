@@ -22,6 +22,7 @@ from arena_common.core import config as config_mod
 from arena_common.geometry.frames import quat_from_yaw, quat_yaw
 from arena_common.mavlink import px4
 from arena_common.runtime import px4_sitl
+from arena_common.runtime.options import read_config
 from arena_common.runtime.px4_sitl import Px4Sitl, Px4SitlError
 from arena_common.runtime.supervisor import plan, sim_world_plan
 from services import sim_vehicle
@@ -65,17 +66,6 @@ def fake_build(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     monkeypatch.setenv(px4_sitl.ENV_DIR, str(build))
     monkeypatch.setattr(px4_sitl, "LOCK_FILE", str(tmp_path / "px4_lock-{n}"))
     return build
-
-
-def test_ports_of_an_instance() -> None:
-    p = px4_sitl.ports(3)
-    assert (p.offboard, p.px4_offboard, p.gcs, p.px4_gcs, p.truth, p.px4_truth) == (
-        14543, 14583, 14550, 18573, 19413, 19453,
-    )  # fmt: skip
-    assert p.system_id == 4 and p.gateway_mavlink() == "udpin:127.0.0.1:14543"
-    for bad in (-1, 10, True, 2.0):
-        with pytest.raises(Px4SitlError, match=r"0\.\.9"):
-            px4_sitl.ports(bad)  # type: ignore[arg-type]
 
 
 def test_no_build_names_both_places(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -244,7 +234,7 @@ system_id = 20
 def _load(tmp_path: Path, text: str) -> config_mod.ArenaConfig:
     path = tmp_path / "arena.toml"
     path.write_text(textwrap.dedent(text))
-    return config_mod.load(path)
+    return read_config(path)
 
 
 def test_plan_starts_px4_sitl_with_its_gateway_and_sim_only_for_sim_vehicles(tmp_path: Path) -> None:
