@@ -53,7 +53,8 @@ class TimeSync:
         """Whether PX4 has had :data:`PX4_CONVERGENCE_WINDOW` answers it could accept since the gateway
         started or it rebooted (each given while the link's last measured round trip was under
         :data:`PX4_MAX_RTT_S`, or before any was measured): from then on it takes our vision stamps, before
-        it uses their arrival time.  An estimate: PX4 judges each answer by its own round trip, which ours measures on the same link."""
+        it uses their arrival time.  An estimate: PX4 judges each answer by its own round trip, which ours
+        measures on the same link."""
         return self.accepted_since_reset >= PX4_CONVERGENCE_WINDOW
 
     @property
