@@ -208,7 +208,7 @@ def test_a_slow_link_is_measured_and_px4_then_stamps_on_arrival(
             ts1 = our_request(sock)
             time.sleep(delay)  # the link's delay, both ways together
             sock.send(px4_frame(seq, time.time_ns(), ts1))
-            wait_for(lambda n=seq + 1: ts.measured == n, 2.0, 0.002, what=f"answer {seq} measured")
+            wait_for(lambda: ts.measured == seq + 1, 2.0, 0.002, what=f"answer {seq} measured")  # noqa: B023
         assert (
             ts.rtt_s is not None and ts.rtt_s >= 0.015 and ts.rtt_min_s is not None and ts.rtt_min_s >= 0.015
         )
