@@ -54,6 +54,7 @@ lint: $(STAMP)
 	$(BIN)/mypy
 	$(BIN)/python -m tools.wiredoc --check
 	$(BIN)/python -m tools.layers
+	$(BIN)/python -m tools.mavlint
 	$(BIN)/python -m tools.typed --check
 
 # API documentation generated from the docstrings (pdoc), written to build/docs/ (open index.html).

@@ -32,9 +32,6 @@ from arena_common.mavlink.protocols import MavCommander, ParamClient, SetupCheck
 
 __all__ = ["LinkWatch"]
 
-MAV_TYPE_GCS = 6
-MAV_AUTOPILOT_INVALID = 8
-
 
 class LinkWatch:
     """What the gateway does for its link as it comes and goes, from the supervisor's loop.
@@ -82,7 +79,9 @@ class LinkWatch:
     def every_second(self) -> None:
         """Our HEARTBEAT (as a ground station) and our TIMESYNC probe."""
         self.link.send(
-            self.link.mav.heartbeat_encode(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, px4.MAV_STATE_ACTIVE)
+            self.link.mav.heartbeat_encode(
+                px4.MAV_TYPE_GCS, px4.MAV_AUTOPILOT_INVALID, 0, 0, px4.MAV_STATE_ACTIVE
+            )
         )
         self.timesync.request()
 

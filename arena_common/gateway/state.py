@@ -21,7 +21,6 @@ from arena_common.mavlink.protocols import SetupChecker
 
 __all__ = ["StateReport", "VehicleState"]
 
-MAV_AUTOPILOT_INVALID = 8
 _LANDED = ("undefined", "on_ground", "in_air", "takeoff", "landing")
 _STATUS_FLAGS = {
     px4.MAV_STATE_CRITICAL: "failsafe",
@@ -33,7 +32,12 @@ _EST_REQUIRED = (
     (px4.ESTIMATOR_VELOCITY_HORIZ, "horizontal velocity"),
     (px4.ESTIMATOR_POS_HORIZ_REL, "horizontal position"),
 )
-_BATTERY_FLAGS = {2: "battery_low", 3: "battery_critical", 4: "battery_emergency", 5: "battery_failed"}
+_BATTERY_FLAGS = {
+    px4.MAV_BATTERY_CHARGE_STATE_LOW: "battery_low",
+    px4.MAV_BATTERY_CHARGE_STATE_CRITICAL: "battery_critical",
+    px4.MAV_BATTERY_CHARGE_STATE_EMERGENCY: "battery_emergency",
+    px4.MAV_BATTERY_CHARGE_STATE_FAILED: "battery_failed",
+}
 
 
 class VehicleState:
@@ -72,7 +76,7 @@ class VehicleState:
 
     # -- input from the reader thread -----------------------------------------------------------------
     def on_heartbeat(self, msg: Any, now: float) -> None:
-        if msg.autopilot == MAV_AUTOPILOT_INVALID:
+        if msg.autopilot == px4.MAV_AUTOPILOT_INVALID:
             return  # a ground station or companion using the vehicle's system id, not the autopilot
         armed = bool(msg.base_mode & px4.MAV_MODE_FLAG_SAFETY_ARMED)
         if msg.base_mode & px4.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
@@ -164,7 +168,9 @@ class VehicleState:
     def on_battery(self, msg: Any, now: float) -> None:
         if 0 <= msg.battery_remaining <= 100:
             self.bat = msg.battery_remaining / 100.0
-        flag = _BATTERY_FLAGS.get(int(getattr(msg, "charge_state", 0)), "")
+        flag = _BATTERY_FLAGS.get(
+            int(getattr(msg, "charge_state", px4.MAV_BATTERY_CHARGE_STATE_UNDEFINED)), ""
+        )
         if flag != self.battery_flag:
             self.battery_flag = flag
             if flag:
