@@ -55,6 +55,7 @@ lint: $(STAMP)
 	$(BIN)/python -m tools.wiredoc --check
 	$(BIN)/python -m tools.rosdoc --check
 	$(BIN)/python -m tools.layers
+	$(BIN)/python -m tools.mavlint
 	$(BIN)/python -m tools.typed --check
 
 # API documentation generated from the docstrings (pdoc), written to build/docs/ (open index.html).

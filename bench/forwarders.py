@@ -64,7 +64,7 @@ def run_zenoh(
     sock = _udp_out()
     addr = ("127.0.0.1", out_port)
     decode = wire.Pose.decode
-    system, component = spec.system_id, 191
+    system, component = spec.system_id, px4.MAV_COMP_ID_ONBOARD_COMPUTER
     state = {"seq": 0, "sent": 0}
     lock = threading.Lock()
 

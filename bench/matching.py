@@ -25,6 +25,7 @@ import msgpack
 from arena_common.bus.session import Bus
 from arena_common.core import keys, wire
 from arena_common.geometry.frames import FrameTransform
+from arena_common.mavlink import px4
 from arena_common.mocap import natnet
 from bench.harness import (
     latency_stats,
@@ -42,7 +43,7 @@ __all__ = [
     "payload_sizes",
 ]
 
-ODOMETRY_ID = 331
+ODOMETRY_ID = px4.MAVLINK_MSG_ID_ODOMETRY
 VISION_RATE = 400.0  # Hz: above the mocap rate, so the decimator passes every pose
 NATNET_VERSION = "3.1"
 _ODO_HEAD = struct.Struct("<Qfff")
@@ -107,10 +108,9 @@ def payload_sizes(n_bodies: int) -> dict[str, int]:
 
 
 def _odometry_size() -> int:
-    from arena_common.mavlink import px4
     from arena_common.mavlink.link import mavlink2
 
-    mav = mavlink2.MAVLink(None, srcSystem=245, srcComponent=191)
+    mav = mavlink2.MAVLink(None, srcSystem=245, srcComponent=mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER)
     args = px4.odometry_args(
         time.time_ns() // 1000, (1.2, -0.7, -1.1), (0.92, 0.0, 0.0, 0.39), (0.1, 0.2, 0.0)
     )

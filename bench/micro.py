@@ -149,7 +149,7 @@ def _wire(scale: float) -> dict[str, dict[str, float]]:
 def _mavlink(scale: float) -> dict[str, float]:
     from arena_common.mavlink.link import mavlink2
 
-    mav = mavlink2.MAVLink(None, srcSystem=245, srcComponent=191)
+    mav = mavlink2.MAVLink(None, srcSystem=245, srcComponent=mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER)
     pose = wire_examples()["Pose"]
     assert isinstance(pose, wire.Pose)
     usec = pose.t // 1000
@@ -173,8 +173,8 @@ def _mavlink(scale: float) -> dict[str, float]:
                     px4.odometry_args(usec, pose.p, pose.q, pose.v, angular_velocity_frd=pose.w)
                 ),
                 0,
-                245,
-                191,
+                mav.srcSystem,
+                mav.srcComponent,
             ),
             n,
         ),
@@ -226,13 +226,15 @@ def _stages(scale: float) -> dict[str, float]:
         if d.vision is not None:
             d.vision.encode()
 
-    mav = mavlink2.MAVLink(None, srcSystem=245, srcComponent=191)
+    mav = mavlink2.MAVLink(None, srcSystem=245, srcComponent=mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER)
 
     def gateway() -> bytes:
         pose = wire.decode_any("arena/d1/vision", pose_raw, enc_p)
         assert isinstance(pose, wire.Pose)
         args = px4.odometry_args(pose.t // 1000, pose.p, pose.q, pose.v, angular_velocity_frd=pose.w)
-        return fastframe.ODOMETRY.frame(fastframe.odometry_payload(args), mav.seq, 245, 191)
+        return fastframe.ODOMETRY.frame(
+            fastframe.odometry_payload(args), mav.seq, mav.srcSystem, mav.srcComponent
+        )
 
     return {
         "ingest: a body of a 10-body MocapFrame, built and encoded": per_call_us(ingest, n // 10) / 10,

@@ -33,6 +33,8 @@ from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
 from arena_common.core.services import by_module
 from arena_common.geometry.frames import quat_canonical, quat_from_yaw, quat_multiply, quat_normalize
+from arena_common.mavlink import px4
+from arena_common.mavlink.link import mavlink2
 from arena_common.runtime.command import Shared, service_command
 from arena_common.runtime.px4_sitl import Px4SitlError, boot_params, find_build, ports, sih_home, sitl_vehicle
 from arena_common.runtime.service import running
@@ -40,8 +42,6 @@ from arena_common.runtime.service import running
 SERVICE = by_module("services.px4_truth").name  # its one name: arena_common/core/services.py
 RATE = 100.0  # Hz asked of PX4 (its 25 Hz default is a coarse mocap)
 EARTH_RADIUS = 6371000.0  # m, the sphere PX4's map projection uses
-MSG_HIL_STATE_QUATERNION = 115
-CMD_SET_MESSAGE_INTERVAL = 511
 
 
 def geodetic_to_ned(
@@ -120,7 +120,10 @@ def main(
     port = ports(spec.px4_instance)
     try:
         conn = mavutil.mavlink_connection(
-            f"udpin:127.0.0.1:{port.truth}", source_system=255, source_component=190, dialect="common"
+            f"udpin:127.0.0.1:{port.truth}",
+            source_system=255,
+            source_component=mavlink2.MAV_COMP_ID_MISSIONPLANNER,
+            dialect="common",
         )
     except OSError as exc:
         raise ConfigError(f"cannot listen on udp 127.0.0.1:{port.truth}: {exc.strerror or exc}") from None
@@ -155,8 +158,8 @@ def main(
                     if slow and now - last_request >= 2.0:
                         # Asked only once PX4 has been heard: the request goes back to where it sends from.
                         conn.mav.command_long_send(
-                            spec.system_id, 1, CMD_SET_MESSAGE_INTERVAL, 0,
-                            MSG_HIL_STATE_QUATERNION, 1e6 / rate, 0, 0, 0, 0, 0,
+                            spec.system_id, 1, px4.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                            mavlink2.MAVLINK_MSG_ID_HIL_STATE_QUATERNION, 1e6 / rate, 0, 0, 0, 0, 0,
                         )  # fmt: skip
                         svc.stats.count("requests")
                         last_request = now

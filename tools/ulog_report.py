@@ -56,7 +56,7 @@ TOPICS = (
     "timesync_status",
 )
 NAV_OFFBOARD = 14
-MAVLINK_TIMESYNC = 1  # timesync_status.source_protocol of PX4's MAVLink links
+TIMESYNC_SOURCE_MAVLINK = 1  # uORB timesync_status.SOURCE_PROTOCOL_MAVLINK (not a MAVLink number)
 MAX_RTT_US = 10_000  # PX4 takes a TIMESYNC answer as a sample only below this round trip (Timesync.hpp)
 REQUIRED = ("vehicle_local_position", "vehicle_local_position_groundtruth", "vehicle_status")
 
@@ -372,7 +372,7 @@ def read_ulog(path: str | Path) -> dict[str, dict[str, np.ndarray]]:
     for d in ulog.data_list:
         if d.name == "timesync_status":  # one instance per link that got answers: the MAVLink one with most
             proto = d.data.get("source_protocol")
-            if proto is not None and not np.all(np.asarray(proto) == MAVLINK_TIMESYNC):
+            if proto is not None and not np.all(np.asarray(proto) == TIMESYNC_SOURCE_MAVLINK):
                 continue
             if d.name in out and len(out[d.name]["timestamp"]) >= len(d.data["timestamp"]):
                 continue

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 
 __all__ = ["Params"]
 
-_FLOAT_TYPES = (px4.MAV_PARAM_TYPE_REAL32, 10, 11)  # REAL32, REAL64 (10), and 11 (unused) read as floats
+_FLOAT_TYPES = (px4.MAV_PARAM_TYPE_REAL32, px4.MAV_PARAM_TYPE_REAL64)  # read as floats, the rest as integers
 
 
 def _typed(value: float, ptype: int) -> int | float:

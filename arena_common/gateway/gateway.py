@@ -16,32 +16,13 @@ and runs them in threads:
 - **events** — published in order from their own thread, so a congested bus never stalls the rest;
 - **supervisor** (the caller's thread, :meth:`Gateway.run`) — State at ``state_rate`` (published while
   anyone subscribes, else built only for its events at ``unwatched_rate``, or ``idle_rate`` while
-  disarmed; raw telemetry is published
-  while anyone subscribes, per message type), our HEARTBEAT
-  at 1 Hz, our TIMESYNC probe at 1 Hz, link-loss detection (no HEARTBEAT for 3 s) and re-opening the
-  link, the arena parameter check when the link comes up.
+  disarmed; :class:`~arena_common.gateway.state.StateReport`), the link's supervision
+  (:class:`~arena_common.gateway.linkwatch.LinkWatch`: our HEARTBEAT and TIMESYNC probe at 1 Hz, link
+  loss after no HEARTBEAT for 3 s, re-opening, what is asked of the autopilot when the link comes up)
+  and its health (:class:`~arena_common.gateway.health.Health`: rejects, signing, the clock's events).
 
 We speak as ``source_system`` (245 by default: not QGroundControl's 255) and component
 MAV_COMP_ID_ONBOARD_COMPUTER (191), and always address the configured ``system_id``, never 0.
-
-When the vehicle's config names a ``signing_key_file``, the link uses MAVLink 2 signing
-(:mod:`arena_common.mavlink.signing`): everything we send is signed (link id 0), and every frame of the vehicle
-must be signed with the same key and carry a fresh timestamp, except RADIO_STATUS; refused frames are
-counted as rejects (``mavlink: unsigned``, ``mavlink: bad signature``, ``mavlink: replayed``…) and
-reported in a ``link`` event (``data.signing``: the reasons) at most every 10 s.  Frames forwarded from a
-ground station go out as they are.
-
-Our HEARTBEAT says MAV_TYPE_GCS: PX4 sends STATUSTEXT (its failsafe texts and the reasons it refuses a
-command) only on links where it hears a ground station, and those texts become events.  To PX4 we are
-then a ground station: losing our heartbeat for COM_DL_LOSS_T triggers NAV_DLL_ACT (disabled by default;
-the arena relies on the offboard-loss and position-loss failsafes, see ``docs/px4.md``).
-
-Whenever the link comes up and after an autopilot reboot, the gateway asks the autopilot for its EKF
-origin and, only if it has none, gives it ``GatewayOptions.origin`` ((0, 0, 0) by default) with
-SET_GPS_GLOBAL_ORIGIN, so that PX4 without GPS has the global reference its AUTO modes need; an origin
-the EKF already has (GNSS) is never replaced, which would re-base its local frame.  It also asks for
-ESTIMATOR_STATUS at ``estimator_rate``: the published state carries no position the autopilot marks
-invalid, nor one dead-reckoned without vision (``fs``: ``position_invalid``, ``dead_reckoning``).
 
 Given the process's :class:`~arena_common.runtime.clock.ClockSync` (``clock``), pose times — on the mocap
 host's clock — are corrected by this host's measured offset before their age is judged and ODOMETRY is
@@ -53,7 +34,6 @@ reference on the bus, ``clock.require`` false).
 
 from __future__ import annotations
 
-import collections
 import logging
 import math
 import threading
@@ -67,27 +47,25 @@ from arena_common.core.config import ArenaConfig
 from arena_common.gateway.clockwatch import ClockWatch
 from arena_common.gateway.commands import CommandExecutor
 from arena_common.gateway.events import EventSink
+from arena_common.gateway.health import Health
+from arena_common.gateway.linkwatch import LinkWatch
 from arena_common.gateway.options import GatewayOptions, stream_ids
 from arena_common.gateway.origin import GlobalOrigin
 from arena_common.gateway.separation import Separation
 from arena_common.gateway.setpoints import SetpointForwarder
-from arena_common.gateway.state import VehicleState
+from arena_common.gateway.state import StateReport, VehicleState
 from arena_common.gateway.telemetry import TelemetryPublisher
 from arena_common.gateway.timesync import TimeSync
 from arena_common.gateway.vision import VisionSender
 from arena_common.mavlink import px4
-from arena_common.mavlink.link import MSG, Frame, GcsForwarder, MavlinkLink, MavlinkLinkError, mavlink2
-from arena_common.mavlink.metadata import HANDLED_MESSAGES, MetadataClient, MetadataError, reboot_required
-from arena_common.mavlink.protocols import MavCommander, ParamClient, SetupChecker
+from arena_common.mavlink.link import MSG, GcsForwarder, MavlinkLink, MavlinkLinkError
+from arena_common.mavlink.metadata import HANDLED_MESSAGES, MetadataClient
+from arena_common.mavlink.protocols import MavCommander, ParamClient
 from arena_common.mavlink.signing import GATEWAY_UNSIGNED, LinkSigning, vehicle_key
 from arena_common.runtime.clock import ClockSync
 from arena_common.runtime.service import Stats
 
 __all__ = ["Gateway", "GatewayOptions"]
-
-MAV_TYPE_GCS = 6
-MAV_AUTOPILOT_INVALID = 8
-MSG_ESTIMATOR_STATUS = 230
 
 
 class Gateway:
@@ -117,7 +95,7 @@ class Gateway:
         self.telemetry_rate = v.telemetry_rate if o.telemetry_rate is None else o.telemetry_rate
         self.stats = stats or Stats()
         self.log = log or logging.getLogger(f"arena.gateway.{v.name}")
-        self._stream_rates = stream_ids(cfg, v.name)  # before opening anything: a bad name is a config error
+        stream_rates = stream_ids(cfg, v.name)  # before opening anything: a bad name is a config error
         key = vehicle_key(cfg, v.name)  # SigningError (a ConfigError) for a bad key file
         self.signing = LinkSigning(key, allow_unsigned=GATEWAY_UNSIGNED) if key is not None else None
         self.link = MavlinkLink(
@@ -126,11 +104,8 @@ class Gateway:
             source_system=o.source_system,
             source_component=o.source_component,
             signing=self.signing,
-            on_reject=self._rejected,
             peer=v.mavlink_peer or None,
         )
-        self._rejects: collections.Counter[tuple[str, str, int]] = collections.Counter()
-        self._rejects_report = 0.0
         self._event_pub = bus.command_publisher(keys.events(v.name), wire.Event) if bus is not None else None
         self.events = EventSink(self._event_pub.put if self._event_pub is not None else None, self.log)
         self.clock_watch = ClockWatch(clock, cfg.clock, self.events)
@@ -138,7 +113,6 @@ class Gateway:
         self.origin = (
             GlobalOrigin(self.link, v.system_id, o.origin, self.events) if o.origin is not None else None
         )
-        self._origin_wanted = False
         self.timesync = TimeSync(self.link)
         self.vision = VisionSender(
             self.link,
@@ -149,43 +123,44 @@ class Gateway:
             offset_ns=clock.offset_ns if clock is not None else None,
             source=keys.vision(v.name),
         )
-        self.commander, self.params, self.metadata, self.setup = self._protocols()
-        self._reboot_names: frozenset[str] | None = None
+        self.health = Health(self.link, self.vision, self.clock_watch, self.stats, self.events, self.log)
+        self.link.on_reject = self.health.rejected  # frames of the vehicle refused for their signature
+        self.commander, self.params, self.metadata = self._protocols()
+        self.linkwatch = LinkWatch(
+            self.link, self.state, self.commander, self.params, self.metadata, self.timesync, self.events,
+            name=v.name, origin=self.origin, options=o, stream_rates=stream_rates,
+        )  # fmt: skip
+        self.setup = self.linkwatch.setup
         self.separation = Separation(self.name, self.cfg.arena.min_separation)
         self.forwarder = self._setpoint_forwarder()
         self.executor = self._command_executor()
+        self.report = StateReport(
+            self.state, self.vision, self.forwarder, self.setup, self.timesync, self.clock_watch,
+            fused_tolerance=o.fused_tolerance,
+        )  # fmt: skip
         self.telemetry = TelemetryPublisher(bus, v.name, self.telemetry_rate, exclude=(MSG["TIMESYNC"],))
         gcs_url = o.gcs if o.gcs is not None else v.gcs
         self.gcs = GcsForwarder(gcs_url, self.link, allow_manual=o.allow_gcs_manual) if gcs_url else None
         self.state.on_mode_change.append(self._mode_changed)
-        self.state.on_reboot.append(self._rebooted)
-        self.state.on_link_change.append(self._link_changed)
+        self.state.on_reboot.append(self.linkwatch.rebooted)
+        self.state.on_link_change.append(self.linkwatch.link_changed)
         self._handlers = self._message_handlers()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._state_pub = (
             bus.stream_publisher(keys.state(v.name), wire.State, Lane.REPORT) if bus is not None else None
         )
-        self._check_wanted = False  # set when the link comes up (or the autopilot reboots)
-        self._checking = threading.Lock()
-        self._lost_since: float | None = None
-        self._next_reopen = 0.0
         self._started = False
-        self._failures: set[tuple[str, str]] = set()
-        self._link_counts: dict[str, int] = {}
-        self._intervals_wanted = False
-        self._position_problem: str | None = None
 
-    def _protocols(self) -> tuple[MavCommander, ParamClient, MetadataClient, SetupChecker]:
-        """The MAVLink exchanges with the autopilot: commands, parameters, its metadata, the setup check."""
+    def _protocols(self) -> tuple[MavCommander, ParamClient, MetadataClient]:
+        """The MAVLink exchanges with the autopilot: commands, parameters, its metadata."""
         v, o = self.spec, self.options
         commander = MavCommander(self.link, v.system_id, ack_timeout=o.ack_timeout, attempts=o.attempts)
         params = ParamClient(self.link, v.system_id, timeout=o.ack_timeout, attempts=o.attempts)
         # The autopilot's own parameter metadata (COMPONENT_METADATA + MAVLink FTP): which parameters need
         # a reboot.  Never reset an FTP session: a ground station may be using it through the forwarder.
         metadata = MetadataClient(self.link, v.system_id, reset_busy=False)
-        setup = SetupChecker(params, self.events, reboot_required=self._reboot_required)
-        return commander, params, metadata, setup
+        return commander, params, metadata
 
     def _setpoint_forwarder(self) -> SetpointForwarder:
         o = self.options
@@ -259,11 +234,14 @@ class Gateway:
         if bus is not None:
             # Each pose is sent from the Zenoh thread that received it: no hand-off, no thread to wake.
             bus.subscribe(
-                keys.vision(self.name), channel=Handler(self._on_vision, lambda e: self._failed("vision", e))
+                keys.vision(self.name),
+                channel=Handler(self._on_vision, lambda e: self.health.failed("vision", e)),
             )
             sp_sub = bus.subscribe(keys.setpoint(self.name), capacity=4, ring=True)
-            self._thread(self.forwarder.run, "setpoints", sp_sub, self._stop, self._failed)
-            bus.subscribe(keys.FLEET, channel=Handler(self._on_fleet, lambda e: self._failed("fleet", e)))
+            self._thread(self.forwarder.run, "setpoints", sp_sub, self._stop, self.health.failed)
+            bus.subscribe(
+                keys.FLEET, channel=Handler(self._on_fleet, lambda e: self.health.failed("fleet", e))
+            )
             estop_sub = bus.subscribe(keys.ESTOP, capacity=16, ring=False)
             self._thread(self._estop_loop, "estop", estop_sub)
             bus.serve(keys.cmd(self.name), self.executor.handle, workers=2)
@@ -321,16 +299,12 @@ class Gateway:
                 next_second = max(next_second + 1.0, now)
                 self._every_second(now)
             self.state.supervise(now)
-            self._supervise_link(now)
+            self.linkwatch.supervise(now)
             stop.wait(max(0.0, min(next_state, next_second) - time.monotonic()))
 
     def _every_second(self, now: float) -> None:
-        self._count_link_rejects()
-        self.clock_watch.check()
-        self.link.send(
-            self.link.mav.heartbeat_encode(MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID, 0, 0, px4.MAV_STATE_ACTIVE)
-        )
-        self.timesync.request()
+        self.health.every_second()
+        self.linkwatch.every_second()
         if self.timesync.rtt_s is not None:
             self._safe(self.telemetry.put, "timesync", self.timesync.fields(), wire.now_ns())
 
@@ -338,208 +312,13 @@ class Gateway:
         """Why pose times cannot be trusted on this host (arming is refused), or None."""
         return self.clock_watch.problem()
 
-    def _count_link_rejects(self) -> None:
-        """Publish what the link dropped since the last call as rejects with a reason."""
-        link = self.link
-        totals = {
-            "mavlink: foreign system": link.foreign,
-            "mavlink: bad crc": link.bad_crc,
-            "mavlink: unchecked frame": link.unchecked,
-            "mavlink: undecodable": link.decode_errors,
-            "mavlink: cannot pack": link.pack_errors,
-            "mavlink: wrong source": link.wrong_source,
-        }
-        if link.wrong_source > self._link_counts.get("mavlink: wrong source", 0):
-            self.events.emit(
-                "link",
-                f"frames from {link.last_wrong_source} dropped: the link is pinned to {self.spec.mavlink_peer}",
-                4,
-                every=10.0,
-            )
-        for reason, total in totals.items():
-            self.stats.reject(reason, total - self._link_counts.get(reason, 0))
-            self._link_counts[reason] = total
-        garbage = link.garbage - self._link_counts.get("garbage", 0)
-        self._link_counts["garbage"] = link.garbage
-        if garbage > 0:
-            self.stats.count("mavlink_garbage_bytes", garbage)
-            self.stats.reject("mavlink: garbage")
-
-    def _failed(self, what: str, exc: BaseException) -> None:
-        """One sample made a loop fail: count it, log the first of each kind, and go on."""
-        self.stats.reject(f"{what}: error")
-        key = (what, type(exc).__name__)
-        if key not in self._failures:
-            self._failures.add(key)
-            self.log.error(
-                "%s: %s: %s (counted as '%s: error'; going on)", what, key[1], exc, what, exc_info=exc
-            )
-
-    def _supervise_link(self, now: float) -> None:
-        if not self.link.is_open:
-            if now >= self._next_reopen:
-                self._next_reopen = now + 1.0
-                if self.link.reopen():
-                    self.events.emit("link", f"link {self.spec.mavlink} open", 6)
-            return
-        if self.state.link:
-            self._lost_since = None
-        elif self.state.hb_count and self._lost_since is None:
-            self._lost_since = now
-            self._next_reopen = now
-        if self._lost_since is not None and now >= self._next_reopen:
-            self._next_reopen = now + self.options.link_timeout
-            ok = self.link.reopen()
-            self.events.emit(
-                "link", f"re-opening {self.spec.mavlink}: {'ok' if ok else 'failed'}", 5, every=10.0
-            )
-        if self.origin is not None and self.state.link:
-            if self._origin_wanted:
-                self._origin_wanted = False
-                self.origin.request(now)
-            else:
-                self.origin.supervise(now)
-        if self._intervals_wanted and self.state.link:
-            self._intervals_wanted = False
-            if self.options.estimator_rate > 0:
-                interval_us = 1e6 / self.options.estimator_rate
-                self.commander.send(px4.MAV_CMD_SET_MESSAGE_INTERVAL, (MSG_ESTIMATOR_STATUS, interval_us))
-            for msgid, hz in self._stream_rates.items():  # the vehicle's stream_rates: 0 stops the stream
-                self.commander.send(px4.MAV_CMD_SET_MESSAGE_INTERVAL, (msgid, 1e6 / hz if hz > 0 else -1.0))
-        if self._check_wanted and self.state.link and not self._checking.locked():
-            self._check_wanted = False
-            threading.Thread(target=self._background_check, name=f"gw-{self.name}-check", daemon=True).start()
-
-    def _background_check(self) -> None:
-        with self._checking:
-            report = self.setup.check(time.monotonic() + 5.0)
-            if not report.get("complete"):
-                self._check_wanted = True  # nothing answered: try again later
-
-    def _link_changed(self, up: bool) -> None:
-        if up:
-            self._origin_wanted = True
-            self._intervals_wanted = True
-        if up and self.options.check_at_start:
-            self._check_wanted = True
-
-    def _rebooted(self) -> None:
-        self._origin_wanted = True
-        self._intervals_wanted = True
-        self.timesync.reset()
-        self._reboot_names = None  # it may be another firmware now
-        self.setup.rebooted()
-        if self.options.check_at_start:
-            self._check_wanted = True
-
-    def _reboot_required(self, deadline: float) -> frozenset[str] | None:
-        """Names of the autopilot's parameters that need a reboot, from its own metadata (None: unknown)."""
-        if self._reboot_names is None:
-            try:
-                self._reboot_names = reboot_required(
-                    self.metadata.fetch(min(deadline, time.monotonic() + 10.0))
-                )
-            except MetadataError as exc:
-                self.events.emit(
-                    "setup",
-                    f"no parameter metadata from the autopilot ({exc}): every parameter written is taken "
-                    "to need a reboot",
-                    5,
-                )
-                return None
-        return self._reboot_names
-
-    def _rejected(self, reason: str, frame: Frame) -> None:
-        """A frame of the vehicle failed the signature check (reader thread)."""
-        self.stats.reject(f"mavlink: {reason}")
-        spec = mavlink2.mavlink_map.get(frame.msgid)
-        self._rejects[(reason, spec.msgname if spec is not None else str(frame.msgid), frame.compid)] += 1
-        now = time.monotonic()
-        if now < self._rejects_report:
-            return
-        self._rejects_report = now + 10.0
-        total = sum(self._rejects.values())
-        reasons: dict[str, int] = {}
-        for (r, _, _), n in self._rejects.items():
-            reasons[r] = reasons.get(r, 0) + n
-        detail = ", ".join(
-            f"{r} {name} (component {c}) ×{n}" for (r, name, c), n in self._rejects.most_common(4)
-        )
-        self._rejects.clear()
-        fingerprint = self.signing.key.fingerprint if self.signing is not None else "?"
-        self.events.emit(
-            "link",
-            f"signing: dropped {total} frame(s) of system {self.spec.system_id}: {detail}; the vehicle must "
-            f"sign with the key {fingerprint} (PX4: MAV_SIGN_CFG and its key)",
-            4,
-            dropped=total,
-            signing=reasons,
-        )
-
     def _mode_changed(self, old: str, new: str) -> None:
         if old == "OFFBOARD" and new != "OFFBOARD":
             self.forwarder.latch(f"the vehicle switched to {new}")
 
     def publish_state(self, now: float | None = None) -> wire.State:
         """Build (and publish, with a bus) the vehicle's :class:`~arena_common.core.wire.State` now."""
-        now = time.monotonic() if now is None else now
-        s, vis = self.state, self.vision
-        t = wire.now_ns()
-        p = s.position(now, max_age=1.0)
-        vis_age = vis.age(now)
-        mp = vis.last_p if vis.sent else None
-        fused = (
-            p is not None
-            and mp is not None
-            and vis_age is not None
-            and vis_age < 0.3
-            and now - s.p_time < 0.3
-            and math.dist(p, mp) <= self.options.fused_tolerance
-        )
-        flags = s.flags(now)
-        problem = s.estimate_problem(now)
-        if vis_age is None or vis_age > px4.EV_TIMEOUT_S:
-            flags.append("vision_stale")
-            if p is not None and problem is None:
-                problem = "no vision reaching the autopilot: its position is dead-reckoned"
-                flags.append("dead_reckoning")
-        if problem is not None and "dead_reckoning" not in flags:
-            flags.append("position_invalid")
-        if problem != self._position_problem:
-            self._position_problem = problem
-            if problem is not None:
-                self.events.emit("estimator", f"position not valid: {problem}", 3, reason=problem)
-            else:
-                self.events.emit("estimator", "position valid again", 6)
-        if self.forwarder.latched is not None and s.mode != "OFFBOARD":
-            flags.append("offboard_latched")
-        flags += self.clock_watch.flags()
-        valid = p is not None and problem is None
-        bat = s.bat
-        msg = wire.State(
-            t=t,
-            sysid=self.spec.system_id,
-            link=s.link,
-            armed=s.armed,
-            mode=s.mode,
-            landed=s.landed,
-            p=p if p is not None and valid and all(math.isfinite(c) for c in p) else None,
-            v=s.v if valid and s.v is not None and all(math.isfinite(c) for c in s.v) else None,
-            q=s.q,
-            mp=mp,
-            bat=None if bat is None else min(1.0, max(0.0, bat)),
-            volt=s.volt,
-            rtt=self.timesync.rtt_s,
-            hb_age=s.hb_age(now),
-            vis_rate=vis.rate(now),
-            vis_age=vis_age,
-            vis_fused=fused,
-            ofb=self.forwarder.streaming(now),
-            setup_ok=bool(self.setup.ok) and not self.setup.reboot_pending,
-            fs=tuple(flags),
-            tp=t,
-            auth=self.forwarder.holder,
-        )
+        msg = self.report.build(time.monotonic() if now is None else now)
         if self._state_pub is not None and self._state_pub.matching:  # nobody listening: nothing to send
             self._safe(self._state_pub.put, msg)
         return msg
@@ -561,7 +340,7 @@ class Gateway:
             try:
                 frames = link.read(0.5)  # a frame wakes it at once; the timeout only sees _stop
             except Exception as exc:
-                self._failed("mavlink", exc)
+                self.health.failed("mavlink", exc)
                 self._stop.wait(0.05)
                 continue
             if not frames:
@@ -582,18 +361,18 @@ class Gateway:
                     try:
                         handler(msg, now)
                     except Exception as exc:  # a malformed message must not stop the link
-                        self._failed(f"mavlink: handling {msg.get_type()}", exc)
+                        self.health.failed(f"mavlink: handling {msg.get_type()}", exc)
                 if due:
                     try:
                         tele.publish(msg, now, t_ns)
                     except Exception as exc:  # the bus is closing, or a field msgpack cannot carry
-                        self._failed("telemetry", exc)
+                        self.health.failed("telemetry", exc)
 
     def _on_vision(self, item: Received[Any]) -> None:
         if self._stop.is_set():
             return
         self.stats.count("in")
-        pose = typed(item, wire.Pose, self._vision_reject)
+        pose = typed(item, wire.Pose, self.health.vision_reject)
         if pose is None:
             return
         reason = self.vision.offer(pose)
@@ -607,7 +386,7 @@ class Gateway:
         ground nothing is decoded: an idle fleet costs next to nothing)."""
         if self._stop.is_set() or self.state.flight_problem() is not None:
             return
-        fleet = typed(item, wire.Fleet, lambda kind, detail: self.stats.reject(f"fleet: {kind}"))
+        fleet = typed(item, wire.Fleet, self.health.fleet_reject)
         if fleet is not None:
             self.separation.update(fleet)
             commanded, travel_left = self.forwarder.course()
@@ -615,26 +394,18 @@ class Gateway:
             if closing is not None:
                 self.forwarder.guard(closing, self.state.mode == "OFFBOARD")
 
-    def _vision_reject(self, kind: str, detail: str) -> None:
-        reason = "undecodable" if kind == "bad_payload" else "not a Pose"
-        self.vision.refused(reason)
-        self.stats.reject(f"vision: {reason}")
-
-    def _estop_reject(self, kind: str, detail: str) -> None:
-        self.stats.reject("estop: undecodable" if kind == "bad_payload" else "estop: not an Estop")
-
     def _estop_loop(self, sub: Subscription) -> None:
         while not self._stop.is_set():
             item = sub.get(0.5)  # an estop wakes it at once; the timeout only sees _stop
             if item is None:
                 continue
-            e = typed(item, wire.Estop, self._estop_reject)
+            e = typed(item, wire.Estop, self.health.estop_reject)
             if e is None:
                 continue
             try:
                 self.estop(e)
             except Exception as exc:  # the next estop must still work
-                self._failed("estop", exc)
+                self.health.failed("estop", exc)
 
     def estop(self, e: wire.Estop) -> str:
         """Land (or kill the motors when ``e.kill``) at once; the autopilot's result."""

@@ -12,9 +12,7 @@ from arena_common.core import wire
 from arena_common.core.errors import GatewayError
 from arena_common.gateway.events import EventSink
 from arena_common.mavlink import px4
-from arena_common.mavlink.link import MavlinkLink
-
-_MSG_GPS_GLOBAL_ORIGIN = 49
+from arena_common.mavlink.link import MSG, MavlinkLink
 
 
 def parse_origin(text: str) -> tuple[float, float, float] | None:
@@ -109,7 +107,7 @@ class GlobalOrigin:
         if now < self._asking_until:
             self.link.send(
                 self.link.mav.command_long_encode(
-                    self.target, 1, px4.MAV_CMD_REQUEST_MESSAGE, 0, _MSG_GPS_GLOBAL_ORIGIN, 0, 0, 0, 0, 0, 0
+                    self.target, 1, px4.MAV_CMD_REQUEST_MESSAGE, 0, MSG["GPS_GLOBAL_ORIGIN"], 0, 0, 0, 0, 0, 0
                 )
             )
             return

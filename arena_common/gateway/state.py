@@ -1,4 +1,5 @@
-"""The vehicle as its autopilot reports it, kept up to date from its messages."""
+"""The vehicle as its autopilot reports it, kept up to date from its messages (:class:`VehicleState`), and the
+:class:`~arena_common.core.wire.State` the gateway publishes of it (:class:`StateReport`)."""
 
 from __future__ import annotations
 
@@ -8,11 +9,18 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from arena_common.core import wire
+from arena_common.gateway.clockwatch import ClockWatch
 from arena_common.gateway.events import EventSink
+from arena_common.gateway.setpoints import SetpointForwarder
+from arena_common.gateway.timesync import TimeSync
+from arena_common.gateway.vision import VisionSender
 from arena_common.geometry.frames import quat_yaw
 from arena_common.mavlink import px4
+from arena_common.mavlink.protocols import SetupChecker
 
-MAV_AUTOPILOT_INVALID = 8
+__all__ = ["StateReport", "VehicleState"]
+
 _LANDED = ("undefined", "on_ground", "in_air", "takeoff", "landing")
 _STATUS_FLAGS = {
     px4.MAV_STATE_CRITICAL: "failsafe",
@@ -24,7 +32,12 @@ _EST_REQUIRED = (
     (px4.ESTIMATOR_VELOCITY_HORIZ, "horizontal velocity"),
     (px4.ESTIMATOR_POS_HORIZ_REL, "horizontal position"),
 )
-_BATTERY_FLAGS = {2: "battery_low", 3: "battery_critical", 4: "battery_emergency", 5: "battery_failed"}
+_BATTERY_FLAGS = {
+    px4.MAV_BATTERY_CHARGE_STATE_LOW: "battery_low",
+    px4.MAV_BATTERY_CHARGE_STATE_CRITICAL: "battery_critical",
+    px4.MAV_BATTERY_CHARGE_STATE_EMERGENCY: "battery_emergency",
+    px4.MAV_BATTERY_CHARGE_STATE_FAILED: "battery_failed",
+}
 
 
 class VehicleState:
@@ -63,7 +76,7 @@ class VehicleState:
 
     # -- input from the reader thread -----------------------------------------------------------------
     def on_heartbeat(self, msg: Any, now: float) -> None:
-        if msg.autopilot == MAV_AUTOPILOT_INVALID:
+        if msg.autopilot == px4.MAV_AUTOPILOT_INVALID:
             return  # a ground station or companion using the vehicle's system id, not the autopilot
         armed = bool(msg.base_mode & px4.MAV_MODE_FLAG_SAFETY_ARMED)
         if msg.base_mode & px4.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
@@ -155,7 +168,9 @@ class VehicleState:
     def on_battery(self, msg: Any, now: float) -> None:
         if 0 <= msg.battery_remaining <= 100:
             self.bat = msg.battery_remaining / 100.0
-        flag = _BATTERY_FLAGS.get(int(getattr(msg, "charge_state", 0)), "")
+        flag = _BATTERY_FLAGS.get(
+            int(getattr(msg, "charge_state", px4.MAV_BATTERY_CHARGE_STATE_UNDEFINED)), ""
+        )
         if flag != self.battery_flag:
             self.battery_flag = flag
             if flag:
@@ -267,3 +282,93 @@ class VehicleState:
         if self.battery_flag:
             out.append(self.battery_flag)
         return out
+
+
+class StateReport:
+    """Builds the vehicle's :class:`~arena_common.core.wire.State` from what the gateway's parts know.
+
+    The state carries no position the autopilot marks invalid (ESTIMATOR_STATUS), nor one dead-reckoned
+    without vision (``fs``: ``position_invalid``, ``dead_reckoning``); an ``estimator`` event says when the
+    position stops or starts being valid.
+    """
+
+    def __init__(
+        self,
+        state: VehicleState,
+        vision: VisionSender,
+        forwarder: SetpointForwarder,
+        setup: SetupChecker,
+        timesync: TimeSync,
+        clock: ClockWatch,
+        *,
+        fused_tolerance: float,
+    ) -> None:
+        self.state = state
+        self.vision = vision
+        self.forwarder = forwarder
+        self.setup = setup
+        self.timesync = timesync
+        self.clock = clock
+        self.fused_tolerance = fused_tolerance  # m between the EKF position and the vision pose: fused
+        self._position_problem: str | None = None
+
+    def build(self, now: float) -> wire.State:
+        """The state at the monotonic ``now`` (and the ``estimator`` event when the position's validity
+        changed since the last call)."""
+        s, vis = self.state, self.vision
+        t = wire.now_ns()
+        p = s.position(now, max_age=1.0)
+        vis_age = vis.age(now)
+        mp = vis.last_p if vis.sent else None
+        fused = (
+            p is not None
+            and mp is not None
+            and vis_age is not None
+            and vis_age < 0.3
+            and now - s.p_time < 0.3
+            and math.dist(p, mp) <= self.fused_tolerance
+        )
+        flags = s.flags(now)
+        problem = s.estimate_problem(now)
+        if vis_age is None or vis_age > px4.EV_TIMEOUT_S:
+            flags.append("vision_stale")
+            if p is not None and problem is None:
+                problem = "no vision reaching the autopilot: its position is dead-reckoned"
+                flags.append("dead_reckoning")
+        if problem is not None and "dead_reckoning" not in flags:
+            flags.append("position_invalid")
+        if problem != self._position_problem:
+            self._position_problem = problem
+            if problem is not None:
+                s.events.emit("estimator", f"position not valid: {problem}", 3, reason=problem)
+            else:
+                s.events.emit("estimator", "position valid again", 6)
+        if self.forwarder.latched is not None and s.mode != "OFFBOARD":
+            flags.append("offboard_latched")
+        flags += self.clock.flags()
+        valid = p is not None and problem is None
+        bat = s.bat
+        return wire.State(
+            t=t,
+            sysid=s.system_id,
+            link=s.link,
+            armed=s.armed,
+            mode=s.mode,
+            landed=s.landed,
+            p=p if p is not None and valid and all(math.isfinite(c) for c in p) else None,
+            v=s.v if valid and s.v is not None and all(math.isfinite(c) for c in s.v) else None,
+            q=s.q,
+            mp=mp,
+            bat=None if bat is None else min(1.0, max(0.0, bat)),
+            volt=s.volt,
+            rtt=self.timesync.rtt_s,
+            hb_age=s.hb_age(now),
+            vis_rate=vis.rate(now),
+            vis_age=vis_age,
+            vis_fused=fused,
+            ofb=self.forwarder.streaming(now),
+            setup_ok=bool(self.setup.ok) and not self.setup.reboot_pending,
+            fs=tuple(flags),
+            tp=t,
+            auth=self.forwarder.holder,
+        )

@@ -1,4 +1,5 @@
-"""PX4 (v1.14–v1.16) and MAVLink facts shared by the gateway and the simulated vehicle.
+"""PX4 (v1.14–v1.16) and MAVLink facts shared by the gateway and the simulated vehicle: the one home of the
+MAVLink numbers the arena writes down (elsewhere pymavlink's own names; ``python -m tools.mavlint``).
 
 Pure data and arithmetic, no I/O and no pymavlink import: flight-mode encoding in ``custom_mode``,
 PX4's bytewise parameter encoding, the default and arena-required parameter values, setpoint and
@@ -160,14 +161,31 @@ MAV_STATE_POWEROFF: Final = 7
 MAV_STATE_FLIGHT_TERMINATION: Final = 8
 
 MAV_TYPE_QUADROTOR: Final = 2
+MAV_TYPE_GCS: Final = 6  # the gateway's HEARTBEAT: PX4 sends STATUSTEXT only where it hears a ground station
 MAV_AUTOPILOT_PX4: Final = 12
+MAV_AUTOPILOT_INVALID: Final = 8  # a HEARTBEAT of no autopilot (a ground station, a companion)
 MAV_COMP_ID_AUTOPILOT1: Final = 1
+MAV_COMP_ID_ONBOARD_COMPUTER: Final = 191
 
 MAV_LANDED_STATE_UNDEFINED: Final = 0
 MAV_LANDED_STATE_ON_GROUND: Final = 1
 MAV_LANDED_STATE_IN_AIR: Final = 2
 MAV_LANDED_STATE_TAKEOFF: Final = 3
 MAV_LANDED_STATE_LANDING: Final = 4
+
+MAV_BATTERY_CHARGE_STATE_UNDEFINED: Final = 0
+MAV_BATTERY_CHARGE_STATE_OK: Final = 1
+MAV_BATTERY_CHARGE_STATE_LOW: Final = 2
+MAV_BATTERY_CHARGE_STATE_CRITICAL: Final = 3
+MAV_BATTERY_CHARGE_STATE_EMERGENCY: Final = 4
+MAV_BATTERY_CHARGE_STATE_FAILED: Final = 5
+
+# Message ids read where pymavlink is not loaded (the signing rules, the benchmarks' frame parsing);
+# elsewhere pymavlink's own ``MAVLINK_MSG_ID_…`` (``arena_common.mavlink.link.MSG``, ``mavlink2``) name them.
+MAVLINK_MSG_ID_ODOMETRY: Final = 331
+MAVLINK_MSG_ID_RADIO_STATUS: Final = 109
+MAVLINK_MSG_ID_ADSB_VEHICLE: Final = 246
+MAVLINK_MSG_ID_COLLISION: Final = 247
 
 
 def base_mode_flags(main: int, sub: int, armed: bool) -> int:
@@ -492,6 +510,7 @@ ESTIMATOR_POS_HORIZ_ABS: Final = 16
 ESTIMATOR_POS_VERT_ABS: Final = 32
 ESTIMATOR_POS_VERT_AGL: Final = 64
 ESTIMATOR_CONST_POS_MODE: Final = 128
+ESTIMATOR_PRED_POS_HORIZ_REL: Final = 256
 ESTIMATOR_GPS_GLITCH: Final = 1024
 ESTIMATOR_ACCEL_ERROR: Final = 2048
 

@@ -45,6 +45,7 @@ from typing import Any
 
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
+from arena_common.mavlink import px4
 
 __all__ = [
     "GATEWAY_UNSIGNED",
@@ -73,11 +74,12 @@ SIGNATURE_BYTES = 13
 _IFLAG_SIGNED = 0x01
 _MAGIC_V2 = 0xFD
 
-RADIO_STATUS, ADSB_VEHICLE, COLLISION = 109, 246, 247
 #: Message ids the gateway accepts unsigned from its vehicle (RADIO_STATUS: radios cannot sign).
-GATEWAY_UNSIGNED: frozenset[int] = frozenset({RADIO_STATUS})
+GATEWAY_UNSIGNED: frozenset[int] = frozenset({px4.MAVLINK_MSG_ID_RADIO_STATUS})
 #: Message ids PX4 accepts unsigned when signing is required (``MavlinkSignControl::accept_unsigned``).
-PX4_UNSIGNED: frozenset[int] = frozenset({RADIO_STATUS, ADSB_VEHICLE, COLLISION})
+PX4_UNSIGNED: frozenset[int] = frozenset(
+    {px4.MAVLINK_MSG_ID_RADIO_STATUS, px4.MAVLINK_MSG_ID_ADSB_VEHICLE, px4.MAVLINK_MSG_ID_COLLISION}
+)
 
 
 class SigningError(ConfigError):

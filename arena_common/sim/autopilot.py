@@ -60,6 +60,7 @@ from pymavlink import mavutil
 
 from arena_common.geometry.quat import quat_from_euler, quat_rotate, quat_yaw
 from arena_common.mavlink import px4
+from arena_common.mavlink.link import mavlink2
 from arena_common.mavlink.px4 import ParamValue
 from arena_common.mavlink.signing import PX4_UNSIGNED, LinkSigning, SigningKey
 from arena_common.mavlink.transports import MavlinkLinkError, parse_serial
@@ -90,7 +91,6 @@ __all__ = [
 ]
 
 NAN = math.nan
-MAV_TYPE_GCS = 6
 Quat = tuple[float, float, float, float]
 
 
@@ -535,7 +535,7 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
 
     def _on_heartbeat(self, msg: Any, t: float) -> None:
         """A ground station's heartbeat (MAV_TYPE_GCS, any system) opens the link to STATUSTEXT."""
-        if msg.type == MAV_TYPE_GCS:
+        if msg.type == px4.MAV_TYPE_GCS:
             self._gcs_heard_at = t
 
     def _on_odometry(self, msg: Any, t: float) -> None:
@@ -604,34 +604,36 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
                 self.gps_origin = (lat, lon, alt)
                 self._projection = MapProjection(lat, lon, alt)
                 self.origin_sets += 1
-        self._request_message(49)  # PX4 answers every request with its origin, when it has one
+        self._request_message(
+            mavlink2.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN
+        )  # PX4 answers every request with its origin, when it has one
 
     _handlers: ClassVar[dict[int, Callable[[SimAutopilot, Any, float], None]]] = {}
 
 
 SimAutopilot._handlers = {
-    0: SimAutopilot._on_heartbeat,
-    76: SimAutopilot._on_command_long,
-    75: SimAutopilot._on_command_int,
-    21: SimAutopilot._on_param_request_list,
-    20: SimAutopilot._on_param_request_read,
-    23: SimAutopilot._on_param_set,
-    82: SimAutopilot._on_set_attitude_target,
-    84: SimAutopilot._on_set_position_target,
-    86: SimAutopilot._on_set_position_target_global,
-    331: SimAutopilot._on_odometry,
-    102: SimAutopilot._on_vision_position_estimate,
-    138: SimAutopilot._on_att_pos_mocap,
-    111: SimAutopilot._on_timesync,
-    48: SimAutopilot._on_set_gps_global_origin,
-    44: SimAutopilot._on_mission_count,
-    73: SimAutopilot._on_mission_item,
-    39: SimAutopilot._on_mission_item,
-    43: SimAutopilot._on_mission_request_list,
-    51: SimAutopilot._on_mission_request,
-    40: SimAutopilot._on_mission_request,
-    45: SimAutopilot._on_mission_clear_all,
-    41: SimAutopilot._on_mission_set_current,
+    mavlink2.MAVLINK_MSG_ID_HEARTBEAT: SimAutopilot._on_heartbeat,
+    mavlink2.MAVLINK_MSG_ID_COMMAND_LONG: SimAutopilot._on_command_long,
+    mavlink2.MAVLINK_MSG_ID_COMMAND_INT: SimAutopilot._on_command_int,
+    mavlink2.MAVLINK_MSG_ID_PARAM_REQUEST_LIST: SimAutopilot._on_param_request_list,
+    mavlink2.MAVLINK_MSG_ID_PARAM_REQUEST_READ: SimAutopilot._on_param_request_read,
+    mavlink2.MAVLINK_MSG_ID_PARAM_SET: SimAutopilot._on_param_set,
+    mavlink2.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET: SimAutopilot._on_set_attitude_target,
+    mavlink2.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED: SimAutopilot._on_set_position_target,
+    mavlink2.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT: SimAutopilot._on_set_position_target_global,
+    mavlink2.MAVLINK_MSG_ID_ODOMETRY: SimAutopilot._on_odometry,
+    mavlink2.MAVLINK_MSG_ID_VISION_POSITION_ESTIMATE: SimAutopilot._on_vision_position_estimate,
+    mavlink2.MAVLINK_MSG_ID_ATT_POS_MOCAP: SimAutopilot._on_att_pos_mocap,
+    mavlink2.MAVLINK_MSG_ID_TIMESYNC: SimAutopilot._on_timesync,
+    mavlink2.MAVLINK_MSG_ID_SET_GPS_GLOBAL_ORIGIN: SimAutopilot._on_set_gps_global_origin,
+    mavlink2.MAVLINK_MSG_ID_MISSION_COUNT: SimAutopilot._on_mission_count,
+    mavlink2.MAVLINK_MSG_ID_MISSION_ITEM_INT: SimAutopilot._on_mission_item,
+    mavlink2.MAVLINK_MSG_ID_MISSION_ITEM: SimAutopilot._on_mission_item,
+    mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_LIST: SimAutopilot._on_mission_request_list,
+    mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST_INT: SimAutopilot._on_mission_request,
+    mavlink2.MAVLINK_MSG_ID_MISSION_REQUEST: SimAutopilot._on_mission_request,
+    mavlink2.MAVLINK_MSG_ID_MISSION_CLEAR_ALL: SimAutopilot._on_mission_clear_all,
+    mavlink2.MAVLINK_MSG_ID_MISSION_SET_CURRENT: SimAutopilot._on_mission_set_current,
 }
 
 

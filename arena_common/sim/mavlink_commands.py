@@ -28,6 +28,7 @@ import math
 from typing import Any, Final
 
 from arena_common.mavlink import px4
+from arena_common.mavlink.link import mavlink2
 from arena_common.sim.base import AutopilotState, as_int, finite
 from arena_common.sim.flight import MODE_LABELS
 from arena_common.sim.physics import Setpoint
@@ -50,7 +51,10 @@ _KNOWN_MAINS: Final = frozenset(
 _KNOWN_AUTO: Final = frozenset(
     {px4.AUTO_TAKEOFF, px4.AUTO_LOITER, px4.AUTO_MISSION, px4.AUTO_RTL, px4.AUTO_LAND}
 )
-_GLOBAL_CMD_FRAMES: Final = frozenset({0, 3, 5, 6})  # GLOBAL(_INT), GLOBAL_RELATIVE_ALT(_INT)
+_RELATIVE_CMD_FRAMES: Final = frozenset(
+    {mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT, mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT}
+)
+_GLOBAL_CMD_FRAMES: Final = _RELATIVE_CMD_FRAMES | {mavlink2.MAV_FRAME_GLOBAL, mavlink2.MAV_FRAME_GLOBAL_INT}
 RETRY_WINDOW_S: Final = 5.0
 MAX_ALT_M: Final = 100_000.0  # beyond this an altitude is nonsense (taken as not given)
 
@@ -157,7 +161,7 @@ class CommandsMixin(AutopilotState):
                 else R.MAV_RESULT_DENIED
             )
         if command == R.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
-            self._request_message(148)
+            self._request_message(mavlink2.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
             return R.MAV_RESULT_ACCEPTED
         if command == px4.MAV_CMD_REQUEST_PROTOCOL_VERSION:
             return R.MAV_RESULT_ACCEPTED  # PX4 acknowledges; no PROTOCOL_VERSION was seen from SITL
@@ -263,7 +267,7 @@ class CommandsMixin(AutopilotState):
             north, east = proj.project(p[4], p[5])
         down = here[2]
         if finite(p[6]) and abs(p[6]) < MAX_ALT_M:
-            relative = self._cmd_frame in (3, 6)
+            relative = self._cmd_frame in _RELATIVE_CMD_FRAMES
             down = self._home[2] - p[6] if relative else proj.alt - p[6]
         if self.mode != (R.MAIN_AUTO, R.AUTO_LOITER):
             self._change_mode((R.MAIN_AUTO, R.AUTO_LOITER), t)
@@ -354,13 +358,13 @@ class CommandsMixin(AutopilotState):
             if not _latlon_ok(msg.lat_int * 1e-7, msg.lon_int * 1e-7) or not abs(msg.alt) < MAX_ALT_M:
                 return
             north, east = proj.project(msg.lat_int * 1e-7, msg.lon_int * 1e-7)
-            if frame == 5:  # MAV_FRAME_GLOBAL_INT
+            if frame == mavlink2.MAV_FRAME_GLOBAL_INT:
                 down = proj.alt - msg.alt
-            elif frame == 6:  # MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+            elif frame == mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT:
                 if not self._home_set:
                     return
                 down = self._home[2] - msg.alt
-            elif frame == 11:  # terrain: no terrain estimate
+            elif frame == mavlink2.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT:  # no terrain estimate
                 return
             else:
                 self._frame_text(t, f"SET_POSITION_TARGET_GLOBAL_INT invalid coordinate frame {frame}")

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 from arena_common.mavlink import px4
+from arena_common.mavlink.link import mavlink2
 from arena_common.sim.base import AutopilotState, Vec3, as_int, finite
 from arena_common.sim.physics import Setpoint
 
@@ -25,18 +26,20 @@ __all__ = ["MissionItem", "MissionMixin"]
 
 NAN = math.nan
 
-MAV_MISSION_ACCEPTED: Final = 0
-MAV_MISSION_ERROR: Final = 1
-MAV_MISSION_UNSUPPORTED: Final = 3
-MAV_MISSION_NO_SPACE: Final = 4
-MAV_MISSION_INVALID_SEQUENCE: Final = 13
-
 MAX_ITEMS: Final = 500
-_GLOBAL_FRAMES: Final = frozenset({0, 3, 5, 6})  # GLOBAL, GLOBAL_RELATIVE_ALT, and their _INT twins
-_RELATIVE_FRAMES: Final = frozenset({3, 6})
-_NAV_WAYPOINT, _LOITER_UNLIM, _LOITER_TIME, _RTL, _LAND, _TAKEOFF = 16, 17, 19, 20, 21, 22
+_RELATIVE_FRAMES: Final = frozenset(
+    {mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT, mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT}
+)
+_GLOBAL_FRAMES: Final = _RELATIVE_FRAMES | {mavlink2.MAV_FRAME_GLOBAL, mavlink2.MAV_FRAME_GLOBAL_INT}
+_NAV_WAYPOINT: Final = mavlink2.MAV_CMD_NAV_WAYPOINT
+_LOITER_UNLIM: Final = mavlink2.MAV_CMD_NAV_LOITER_UNLIM
+_LOITER_TIME: Final = mavlink2.MAV_CMD_NAV_LOITER_TIME
+_RTL: Final = px4.MAV_CMD_NAV_RETURN_TO_LAUNCH
+_LAND: Final = px4.MAV_CMD_NAV_LAND
+_TAKEOFF: Final = px4.MAV_CMD_NAV_TAKEOFF
 _NAV_ITEMS: Final = frozenset({_NAV_WAYPOINT, _LOITER_UNLIM, _LOITER_TIME, _RTL, _LAND, _TAKEOFF})
-_DO_CHANGE_SPEED: Final = 178
+_DO_CHANGE_SPEED: Final = px4.MAV_CMD_DO_CHANGE_SPEED
+_MISSION: Final = mavlink2.MAV_MISSION_TYPE_MISSION  # the one mission type flown (no fence, no rally)
 UPLOAD_RETRY_S: Final = 0.5
 UPLOAD_RETRIES: Final = 5
 
@@ -78,24 +81,26 @@ class MissionMixin(AutopilotState):
 
     # ------------------------------------------------------------------ protocol
 
-    def _mission_ack(self, target: tuple[int, int], result: int, mission_type: int = 0) -> None:
+    def _mission_ack(self, target: tuple[int, int], result: int, mission_type: int = _MISSION) -> None:
         self.conn.mav.mission_ack_send(target[0], target[1], result, mission_type)
 
     def _on_mission_count(self, msg: Any, t: float) -> None:
         if not self._addressed(msg.target_system, msg.target_component, False):
             return
         src = (msg.get_srcSystem(), msg.get_srcComponent())
-        mtype = int(getattr(msg, "mission_type", 0))
+        mtype = int(getattr(msg, "mission_type", _MISSION))
         count = int(msg.count)
-        if mtype != 0:
-            self._mission_ack(src, MAV_MISSION_ACCEPTED if count == 0 else MAV_MISSION_UNSUPPORTED, mtype)
+        if mtype != _MISSION:
+            self._mission_ack(
+                src, mavlink2.MAV_MISSION_ACCEPTED if count == 0 else mavlink2.MAV_MISSION_UNSUPPORTED, mtype
+            )
             return
         if count == 0:
             self._mission_clear()
-            self._mission_ack(src, MAV_MISSION_ACCEPTED)
+            self._mission_ack(src, mavlink2.MAV_MISSION_ACCEPTED)
             return
         if count > MAX_ITEMS:
-            self._mission_ack(src, MAV_MISSION_NO_SPACE)
+            self._mission_ack(src, mavlink2.MAV_MISSION_NO_SPACE)
             return
         self._upload = {"src": src, "items": [], "count": count, "next_at": t, "tries": 0}
         self._request_next_item(t)
@@ -105,7 +110,7 @@ class MissionMixin(AutopilotState):
         if up is None:
             return
         seq = len(up["items"])
-        self.conn.mav.mission_request_int_send(up["src"][0], up["src"][1], seq, 0)
+        self.conn.mav.mission_request_int_send(up["src"][0], up["src"][1], seq, _MISSION)
         up["next_at"] = t + UPLOAD_RETRY_S
         up["tries"] += 1
 
@@ -115,7 +120,7 @@ class MissionMixin(AutopilotState):
         if up is None or t < up["next_at"]:
             return
         if up["tries"] >= UPLOAD_RETRIES:
-            self._mission_ack(up["src"], MAV_MISSION_ERROR)
+            self._mission_ack(up["src"], mavlink2.MAV_MISSION_ERROR)
             self._upload = None
             return
         self._request_next_item(t)
@@ -125,7 +130,7 @@ class MissionMixin(AutopilotState):
         up = self._upload
         if up is None or not self._addressed(msg.target_system, msg.target_component, False):
             return
-        if int(getattr(msg, "mission_type", 0)) != 0:
+        if int(getattr(msg, "mission_type", _MISSION)) != _MISSION:
             return
         seq = int(msg.seq)
         expected = len(up["items"])
@@ -136,7 +141,7 @@ class MissionMixin(AutopilotState):
             return
         frame = int(msg.frame)
         x, y = float(msg.x), float(msg.y)
-        if msg.get_msgId() == 73 and frame in _GLOBAL_FRAMES:
+        if msg.get_msgId() == mavlink2.MAVLINK_MSG_ID_MISSION_ITEM_INT and frame in _GLOBAL_FRAMES:
             x, y = x * 1e-7, y * 1e-7  # MISSION_ITEM_INT: 1e7 degrees in every global frame
         params = (float(msg.param1), float(msg.param2), float(msg.param3), float(msg.param4))
         up["items"].append(
@@ -150,14 +155,14 @@ class MissionMixin(AutopilotState):
         self._mission_current = 0
         self._mission_done = False
         self._upload = None
-        self._mission_ack(up["src"], MAV_MISSION_ACCEPTED)
-        self._request_message(42)
+        self._mission_ack(up["src"], mavlink2.MAV_MISSION_ACCEPTED)
+        self._request_message(mavlink2.MAVLINK_MSG_ID_MISSION_CURRENT)
 
     def _on_mission_request_list(self, msg: Any, t: float) -> None:
         if not self._addressed(msg.target_system, msg.target_component, False):
             return
-        mtype = int(getattr(msg, "mission_type", 0))
-        count = len(self._mission) if mtype == 0 else 0
+        mtype = int(getattr(msg, "mission_type", _MISSION))
+        count = len(self._mission) if mtype == _MISSION else 0
         self.conn.mav.mission_count_send(msg.get_srcSystem(), msg.get_srcComponent(), count, mtype)
 
     def _on_mission_request(self, msg: Any, t: float) -> None:
@@ -166,23 +171,24 @@ class MissionMixin(AutopilotState):
             return
         src = (msg.get_srcSystem(), msg.get_srcComponent())
         seq = int(msg.seq)
-        if int(getattr(msg, "mission_type", 0)) != 0 or not 0 <= seq < len(self._mission):
-            self._mission_ack(src, MAV_MISSION_INVALID_SEQUENCE, int(getattr(msg, "mission_type", 0)))
+        mtype = int(getattr(msg, "mission_type", _MISSION))
+        if mtype != _MISSION or not 0 <= seq < len(self._mission):
+            self._mission_ack(src, mavlink2.MAV_MISSION_INVALID_SEQUENCE, mtype)
             return
         item = self._mission[seq]
         x, y = item.wire_xy()
         self.conn.mav.mission_item_int_send(
             src[0], src[1], seq, item.frame, item.command, int(seq == self._mission_current),
-            item.autocontinue, *item.params, x, y, item.alt, 0,
+            item.autocontinue, *item.params, x, y, item.alt, _MISSION,
         )  # fmt: skip
 
     def _on_mission_clear_all(self, msg: Any, t: float) -> None:
         if not self._addressed(msg.target_system, msg.target_component, False):
             return
-        mtype = int(getattr(msg, "mission_type", 0))
-        if mtype in (0, 255):
+        mtype = int(getattr(msg, "mission_type", _MISSION))
+        if mtype in (_MISSION, mavlink2.MAV_MISSION_TYPE_ALL):
             self._mission_clear()
-        self._mission_ack((msg.get_srcSystem(), msg.get_srcComponent()), MAV_MISSION_ACCEPTED, mtype)
+        self._mission_ack((msg.get_srcSystem(), msg.get_srcComponent()), mavlink2.MAV_MISSION_ACCEPTED, mtype)
 
     def _on_mission_set_current(self, msg: Any, t: float) -> None:
         if self._addressed(msg.target_system, msg.target_component, False):
@@ -194,7 +200,7 @@ class MissionMixin(AutopilotState):
         self._mission_current = seq
         self._mission_done = False
         self._nav.pop("reached_at", None)
-        self._request_message(42)
+        self._request_message(mavlink2.MAVLINK_MSG_ID_MISSION_CURRENT)
         return True
 
     def _mission_clear(self) -> None:
@@ -204,7 +210,7 @@ class MissionMixin(AutopilotState):
         if self._user_mode == (px4.MAIN_AUTO, px4.AUTO_MISSION) and self.armed:
             self._user_mode = (px4.MAIN_AUTO, px4.AUTO_LOITER)
             self._enter_nav()
-        self._request_message(42)
+        self._request_message(mavlink2.MAVLINK_MSG_ID_MISSION_CURRENT)
 
     # ------------------------------------------------------------------ flight
 
@@ -250,7 +256,7 @@ class MissionMixin(AutopilotState):
             self._nav["hold"] = self.sim.estimator.out_position
         else:
             self._mission_current += 1
-        self._request_message(42)
+        self._request_message(mavlink2.MAVLINK_MSG_ID_MISSION_CURRENT)
 
     def _mission_navigate(self, t: float) -> None:
         """Fly AUTO.MISSION one control period."""

@@ -25,6 +25,7 @@ from typing import Final
 
 from arena_common.geometry.quat import quat_rotate_inverse, quat_to_euler
 from arena_common.mavlink import px4
+from arena_common.mavlink.link import mavlink2
 from arena_common.sim.base import AutopilotState, MapProjection
 
 __all__ = ["CAPABILITIES", "FLIGHT_SW_VERSION", "REQUESTABLE", "STREAMS", "TelemetryMixin"]
@@ -33,64 +34,69 @@ NAN = math.nan
 
 #: Telemetry streams (message id → (name, default rate Hz)), as PX4 v1.16's onboard MAVLink mode.
 STREAMS: Final[dict[int, tuple[str, float]]] = {
-    0: ("HEARTBEAT", 1.0),
-    1: ("SYS_STATUS", 2.0),
-    245: ("EXTENDED_SYS_STATE", 5.0),
-    30: ("ATTITUDE", 100.0),
-    31: ("ATTITUDE_QUATERNION", 50.0),
-    32: ("LOCAL_POSITION_NED", 30.0),
-    33: ("GLOBAL_POSITION_INT", 50.0),
-    331: ("ODOMETRY", 30.0),
-    105: ("HIGHRES_IMU", 50.0),
-    147: ("BATTERY_STATUS", 1.0),
-    230: ("ESTIMATOR_STATUS", 1.0),
-    242: ("HOME_POSITION", 0.5),
-    42: ("MISSION_CURRENT", 1.0),
+    getattr(mavlink2, f"MAVLINK_MSG_ID_{name}"): (name, rate)
+    for name, rate in (
+        ("HEARTBEAT", 1.0),
+        ("SYS_STATUS", 2.0),
+        ("EXTENDED_SYS_STATE", 5.0),
+        ("ATTITUDE", 100.0),
+        ("ATTITUDE_QUATERNION", 50.0),
+        ("LOCAL_POSITION_NED", 30.0),
+        ("GLOBAL_POSITION_INT", 50.0),
+        ("ODOMETRY", 30.0),
+        ("HIGHRES_IMU", 50.0),
+        ("BATTERY_STATUS", 1.0),
+        ("ESTIMATOR_STATUS", 1.0),
+        ("HOME_POSITION", 0.5),
+        ("MISSION_CURRENT", 1.0),
+    )
 }
 #: Messages MAV_CMD_REQUEST_MESSAGE can ask for: the streams, AUTOPILOT_VERSION, GPS_GLOBAL_ORIGIN.
-REQUESTABLE: Final = frozenset({*STREAMS, 148, 49})
+REQUESTABLE: Final = frozenset(
+    {*STREAMS, mavlink2.MAVLINK_MSG_ID_AUTOPILOT_VERSION, mavlink2.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN}
+)
 
 FLIGHT_SW_VERSION: Final = (1 << 24) | (16 << 16) | (0 << 8) | 255  # 1.16.0 official, as the SITL build
 #: What the simulated vehicle implements (PX4 v1.16 SITL advertises 59647: also MISSION_FLOAT, PARAM_FLOAT,
 #: FTP, MISSION_FENCE, MISSION_RALLY, which the simulation does not do).
 CAPABILITIES: Final = (
-    4  # MISSION_INT
-    | 8  # COMMAND_INT
-    | 16  # PARAM_ENCODE_BYTEWISE
-    | 64  # SET_ATTITUDE_TARGET (attitude and thrust; body rates not simulated)
-    | 128  # SET_POSITION_TARGET_LOCAL_NED
-    | 256  # SET_POSITION_TARGET_GLOBAL_INT (PX4 implements it without advertising it)
-    | 2048  # FLIGHT_TERMINATION
-    | 8192  # MAVLINK2
+    mavlink2.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+    # attitude and thrust; body rates not simulated
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+    # PX4 implements it without advertising it
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_FLIGHT_TERMINATION
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_MAVLINK2
 )
 
 _SENSORS: Final = (
-    0x01  # 3D gyro
-    | 0x02  # 3D accel
-    | 0x04  # 3D mag
-    | 0x08  # absolute pressure
-    | 0x80  # vision position
-    | 0x8000  # motor outputs
-    | 0x200000  # AHRS
-    | 0x2000000  # battery
-    | 0x10000000  # pre-arm check
+    mavlink2.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    | mavlink2.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mavlink2.MAV_SYS_STATUS_SENSOR_3D_MAG
+    | mavlink2.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+    | mavlink2.MAV_SYS_STATUS_SENSOR_VISION_POSITION
+    | mavlink2.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+    | mavlink2.MAV_SYS_STATUS_AHRS
+    | mavlink2.MAV_SYS_STATUS_SENSOR_BATTERY
+    | mavlink2.MAV_SYS_STATUS_PREARM_CHECK
+)
+#: HIGHRES_IMU.fields_updated: every field, XACC … TEMPERATURE.
+_IMU_UPDATED: Final = 2 * mavlink2.HIGHRES_IMU_UPDATED_TEMPERATURE - 1
+#: BATTERY_STATUS.charge_state of each battery level (ok, low, critical, emergency).
+_CHARGE_STATES: Final = (
+    px4.MAV_BATTERY_CHARGE_STATE_OK,
+    px4.MAV_BATTERY_CHARGE_STATE_LOW,
+    px4.MAV_BATTERY_CHARGE_STATE_CRITICAL,
+    px4.MAV_BATTERY_CHARGE_STATE_EMERGENCY,
 )
 
 GCS_TIMEOUT_S: Final = 2.5  # PX4's telemetry_status HEARTBEAT_TIMEOUT_US
 STATUSTEXT_QUEUE: Final = 8  # PX4's mavlink_log ORB_QUEUE_LENGTH
 STATUSTEXT_STALE_S: Final = 5.0
 STATUSTEXT_MAX: Final = 126  # mavlink_log text[127], NUL-terminated
-
-# ESTIMATOR_STATUS_FLAGS
-_ATTITUDE = 1
-_VEL_HORIZ = 2
-_VEL_VERT = 4
-_POS_HORIZ_REL = 8
-_POS_HORIZ_ABS = 16
-_POS_VERT_ABS = 32
-_POS_VERT_AGL = 64
-_CONST_POS_MODE = 128
-_PRED_POS_HORIZ_REL = 256
 
 
 def _i32(value: float) -> int:
@@ -200,19 +206,19 @@ class TelemetryMixin(AutopilotState):
         origin), flying 383, dead reckoning 127, position lost 101 in the air and 37 landed)."""
         est = self.sim.estimator
         landed = self.sim.landed
-        flags = _ATTITUDE
+        flags = px4.ESTIMATOR_ATTITUDE
         if est.z_valid:
-            flags |= _VEL_VERT | _POS_VERT_ABS
+            flags |= px4.ESTIMATOR_VELOCITY_VERT | px4.ESTIMATOR_POS_VERT_ABS
             if est.xy_valid or not landed:
-                flags |= _POS_VERT_AGL
+                flags |= px4.ESTIMATOR_POS_VERT_AGL
         if est.xy_valid:
-            flags |= _VEL_HORIZ | _POS_HORIZ_REL
+            flags |= px4.ESTIMATOR_VELOCITY_HORIZ | px4.ESTIMATOR_POS_HORIZ_REL
             if self.gps_origin is not None:
-                flags |= _POS_HORIZ_ABS
+                flags |= px4.ESTIMATOR_POS_HORIZ_ABS
             if landed:
-                flags |= _CONST_POS_MODE
+                flags |= px4.ESTIMATOR_CONST_POS_MODE
             if not est.dead_reckoning:
-                flags |= _PRED_POS_HORIZ_REL
+                flags |= px4.ESTIMATOR_PRED_POS_HORIZ_REL
         return flags
 
     def _home_global(self, proj: MapProjection) -> tuple[float, float, float]:
@@ -224,7 +230,7 @@ class TelemetryMixin(AutopilotState):
         sim = self.sim
         est = sim.estimator
         boot_ms = int(t * 1000) & 0xFFFFFFFF
-        if mid == 0:
+        if mid == mavlink2.MAVLINK_MSG_ID_HEARTBEAT:
             main, sub = self.mode
             status = px4.MAV_STATE_STANDBY
             if self.terminated:
@@ -240,31 +246,31 @@ class TelemetryMixin(AutopilotState):
                 px4.encode_custom_mode(main, sub),
                 status,
             )
-        elif mid == 1:
+        elif mid == mavlink2.MAVLINK_MSG_ID_SYS_STATUS:
             bat = sim.battery
             health = _SENSORS
             if not est.vision_fusing:
-                health &= ~0x80
+                health &= ~mavlink2.MAV_SYS_STATUS_SENSOR_VISION_POSITION
             if not self.armed and self._arm_denial(t):
-                health &= ~0x10000000
+                health &= ~mavlink2.MAV_SYS_STATUS_PREARM_CHECK
             mav.sys_status_send(
                 _SENSORS, _SENSORS, health, 250, int(bat.voltage * 1000), int(bat.current * 100),
                 round(bat.soc * 100), 0, 0, 0, 0, 0, 0,
             )  # fmt: skip
-        elif mid == 245:
-            mav.extended_sys_state_send(0, self.landed_state)
-        elif mid == 30:
+        elif mid == mavlink2.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
+            mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, self.landed_state)
+        elif mid == mavlink2.MAVLINK_MSG_ID_ATTITUDE:
             roll, pitch, yaw = quat_to_euler(est.attitude())
             r = sim.body.rates
             mav.attitude_send(boot_ms, roll, pitch, yaw, r[0], r[1], r[2])
-        elif mid == 31:
+        elif mid == mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
             q = est.attitude()
             r = sim.body.rates
             mav.attitude_quaternion_send(boot_ms, q[0], q[1], q[2], q[3], r[0], r[1], r[2])
-        elif mid == 32:
+        elif mid == mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
             p, v = est.out_position, est.out_velocity
             mav.local_position_ned_send(boot_ms, p[0], p[1], p[2], v[0], v[1], v[2])
-        elif mid == 33:
+        elif mid == mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
             proj = self.projection()
             if proj is None or not self._global_ok():
                 return
@@ -276,7 +282,7 @@ class TelemetryMixin(AutopilotState):
                 _i32((self._home[2] - p[2]) * 1000), max(-32768, min(32767, round(v[0] * 100))),
                 max(-32768, min(32767, round(v[1] * 100))), max(-32768, min(32767, round(v[2] * 100))), hdg,
             )  # fmt: skip
-        elif mid == 331:
+        elif mid == mavlink2.MAVLINK_MSG_ID_ODOMETRY:
             q = est.attitude()
             p = est.out_position
             vb = quat_rotate_inverse(q, est.out_velocity)
@@ -286,7 +292,7 @@ class TelemetryMixin(AutopilotState):
                 int(t * 1e6), px4.MAV_FRAME_LOCAL_NED, px4.MAV_FRAME_BODY_FRD, p[0], p[1], p[2], list(q),
                 vb[0], vb[1], vb[2], r[0], r[1], r[2], nan21, nan21, 0, px4.MAV_ESTIMATOR_TYPE_AUTOPILOT, 0,
             )  # fmt: skip
-        elif mid == 105:
+        elif mid == mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU:
             body = sim.body
             acc = body.specific_force_body()
             r = body.rates
@@ -294,21 +300,22 @@ class TelemetryMixin(AutopilotState):
             alt = -body.position[2]
             mav.highres_imu_send(
                 int(t * 1e6), acc[0], acc[1], acc[2], r[0], r[1], r[2], mag[0], mag[1], mag[2],
-                1013.25 - alt * 0.12, 0.0, alt, 25.0, 0x1FFF,
+                1013.25 - alt * 0.12, 0.0, alt, 25.0, _IMU_UPDATED,
             )  # fmt: skip
-        elif mid == 147:
+        elif mid == mavlink2.MAVLINK_MSG_ID_BATTERY_STATUS:
             bat = sim.battery
             cells = min(bat.params.cells, 10)
             voltages = [int(bat.cell_voltage() * 1000)] * cells + [0xFFFF] * (10 - cells)
             mav.battery_status_send(
-                0, 1, 1, 0x7FFF, voltages, int(bat.current * 100), int(bat.consumed_mah),
-                int(bat.energy_j / 100), round(bat.soc * 100), 0, (1, 2, 3, 4)[self._battery_level],
+                0, mavlink2.MAV_BATTERY_FUNCTION_ALL, mavlink2.MAV_BATTERY_TYPE_LIPO, 0x7FFF, voltages,
+                int(bat.current * 100), int(bat.consumed_mah), int(bat.energy_j / 100), round(bat.soc * 100), 0,
+                _CHARGE_STATES[self._battery_level],
             )  # fmt: skip
-        elif mid == 230:
+        elif mid == mavlink2.MAVLINK_MSG_ID_ESTIMATOR_STATUS:
             mav.estimator_status_send(
                 int(t * 1e6), self._estimator_flags(), NAN, 0.01, 0.01, 0.0, 0.0, NAN, 0.03, 0.02
             )
-        elif mid == 242:
+        elif mid == mavlink2.MAVLINK_MSG_ID_HOME_POSITION:
             proj = self.projection()
             if proj is None or not self._home_set:
                 return
@@ -318,25 +325,27 @@ class TelemetryMixin(AutopilotState):
             lat_e7, lon_e7, alt_mm = _i32(lat * 1e7), _i32(lon * 1e7), _i32(alt * 1000)
             usec = int(t * 1e6)
             mav.home_position_send(lat_e7, lon_e7, alt_mm, h[0], h[1], h[2], list(q), 0.0, 0.0, 0.0, usec)
-        elif mid == 42:
+        elif mid == mavlink2.MAVLINK_MSG_ID_MISSION_CURRENT:
             total = len(self._mission)
             if total == 0:
-                state = 1  # MISSION_STATE_NO_MISSION
+                state = mavlink2.MISSION_STATE_NO_MISSION
             elif self._mission_done:
-                state = 5  # COMPLETE
+                state = mavlink2.MISSION_STATE_COMPLETE
             elif self.mode == (px4.MAIN_AUTO, px4.AUTO_MISSION):
-                state = 3  # ACTIVE
+                state = mavlink2.MISSION_STATE_ACTIVE
+            elif self._mission_current == 0:
+                state = mavlink2.MISSION_STATE_NOT_STARTED
             else:
-                state = 2 if self._mission_current == 0 else 4  # NOT_STARTED / PAUSED
+                state = mavlink2.MISSION_STATE_PAUSED
             in_mission = 1 if self.mode == (px4.MAIN_AUTO, px4.AUTO_MISSION) else 2
             mav.mission_current_send(self._mission_current, total, state, in_mission)
-        elif mid == 49:
+        elif mid == mavlink2.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
             origin = self.gps_origin
             if origin is not None:
                 mav.gps_global_origin_send(
                     _i32(origin[0] * 1e7), _i32(origin[1] * 1e7), _i32(origin[2] * 1000), int(t * 1e6)
                 )
-        elif mid == 148:
+        elif mid == mavlink2.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             uid = (self.system_id << 32) | 0x5E4A
             mav.autopilot_version_send(
                 CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, uid

@@ -10,59 +10,62 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Final
 
+from arena_common.mavlink.link import mavlink2
 from arena_common.mavlink.metadata._errors import MetadataError
 
 # MAVLink FTP opcodes (MAV_FTP_OPCODE) and NAK error codes (MAV_FTP_ERR), https://mavlink.io/en/services/ftp.html
-OP_NONE: Final = 0
-OP_TERMINATE_SESSION: Final = 1
-OP_RESET_SESSIONS: Final = 2
-OP_OPEN_FILE_RO: Final = 4
-OP_READ_FILE: Final = 5
-OP_BURST_READ_FILE: Final = 15
-OP_ACK: Final = 128
-OP_NAK: Final = 129
+OP_NONE: Final = mavlink2.MAV_FTP_OPCODE_NONE
+OP_TERMINATE_SESSION: Final = mavlink2.MAV_FTP_OPCODE_TERMINATESESSION
+OP_RESET_SESSIONS: Final = mavlink2.MAV_FTP_OPCODE_RESETSESSION
+OP_OPEN_FILE_RO: Final = mavlink2.MAV_FTP_OPCODE_OPENFILERO
+OP_READ_FILE: Final = mavlink2.MAV_FTP_OPCODE_READFILE
+OP_BURST_READ_FILE: Final = mavlink2.MAV_FTP_OPCODE_BURSTREADFILE
+OP_ACK: Final = mavlink2.MAV_FTP_OPCODE_ACK
+OP_NAK: Final = mavlink2.MAV_FTP_OPCODE_NAK
 
+#: The opcodes' names as the FTP specification spells them.
 OPCODE_NAMES: Final[Mapping[int, str]] = {
-    0: "None",
-    1: "TerminateSession",
-    2: "ResetSessions",
-    3: "ListDirectory",
-    4: "OpenFileRO",
-    5: "ReadFile",
-    6: "CreateFile",
-    7: "WriteFile",
-    8: "RemoveFile",
-    9: "CreateDirectory",
-    10: "RemoveDirectory",
-    11: "OpenFileWO",
-    12: "TruncateFile",
-    13: "Rename",
-    14: "CalcFileCRC32",
-    15: "BurstReadFile",
-    128: "ACK",
-    129: "NAK",
+    mavlink2.MAV_FTP_OPCODE_NONE: "None",
+    mavlink2.MAV_FTP_OPCODE_TERMINATESESSION: "TerminateSession",
+    mavlink2.MAV_FTP_OPCODE_RESETSESSION: "ResetSessions",
+    mavlink2.MAV_FTP_OPCODE_LISTDIRECTORY: "ListDirectory",
+    mavlink2.MAV_FTP_OPCODE_OPENFILERO: "OpenFileRO",
+    mavlink2.MAV_FTP_OPCODE_READFILE: "ReadFile",
+    mavlink2.MAV_FTP_OPCODE_CREATEFILE: "CreateFile",
+    mavlink2.MAV_FTP_OPCODE_WRITEFILE: "WriteFile",
+    mavlink2.MAV_FTP_OPCODE_REMOVEFILE: "RemoveFile",
+    mavlink2.MAV_FTP_OPCODE_CREATEDIRECTORY: "CreateDirectory",
+    mavlink2.MAV_FTP_OPCODE_REMOVEDIRECTORY: "RemoveDirectory",
+    mavlink2.MAV_FTP_OPCODE_OPENFILEWO: "OpenFileWO",
+    mavlink2.MAV_FTP_OPCODE_TRUNCATEFILE: "TruncateFile",
+    mavlink2.MAV_FTP_OPCODE_RENAME: "Rename",
+    mavlink2.MAV_FTP_OPCODE_CALCFILECRC: "CalcFileCRC32",
+    mavlink2.MAV_FTP_OPCODE_BURSTREADFILE: "BurstReadFile",
+    mavlink2.MAV_FTP_OPCODE_ACK: "ACK",
+    mavlink2.MAV_FTP_OPCODE_NAK: "NAK",
 }
 
-ERR_FAIL: Final = 1
-ERR_FAIL_ERRNO: Final = 2
-ERR_INVALID_SESSION: Final = 4
-ERR_NO_SESSIONS_AVAILABLE: Final = 5
-ERR_EOF: Final = 6
-ERR_UNKNOWN_COMMAND: Final = 7
-ERR_FILE_NOT_FOUND: Final = 10
+ERR_FAIL: Final = mavlink2.MAV_FTP_ERR_FAIL
+ERR_FAIL_ERRNO: Final = mavlink2.MAV_FTP_ERR_FAILERRNO
+ERR_INVALID_SESSION: Final = mavlink2.MAV_FTP_ERR_INVALIDSESSION
+ERR_NO_SESSIONS_AVAILABLE: Final = mavlink2.MAV_FTP_ERR_NOSESSIONSAVAILABLE
+ERR_EOF: Final = mavlink2.MAV_FTP_ERR_EOF
+ERR_UNKNOWN_COMMAND: Final = mavlink2.MAV_FTP_ERR_UNKNOWNCOMMAND
+ERR_FILE_NOT_FOUND: Final = mavlink2.MAV_FTP_ERR_FILENOTFOUND
 
+#: The NAK error codes' names as the FTP specification spells them.
 ERROR_NAMES: Final[Mapping[int, str]] = {
-    0: "None",
-    1: "Fail",
-    2: "FailErrno",
-    3: "InvalidDataSize",
-    4: "InvalidSession",
-    5: "NoSessionsAvailable",
-    6: "EOF",
-    7: "UnknownCommand",
-    8: "FileExists",
-    9: "FileProtected",
-    10: "FileNotFound",
+    mavlink2.MAV_FTP_ERR_NONE: "None",
+    mavlink2.MAV_FTP_ERR_FAIL: "Fail",
+    mavlink2.MAV_FTP_ERR_FAILERRNO: "FailErrno",
+    mavlink2.MAV_FTP_ERR_INVALIDDATASIZE: "InvalidDataSize",
+    mavlink2.MAV_FTP_ERR_INVALIDSESSION: "InvalidSession",
+    mavlink2.MAV_FTP_ERR_NOSESSIONSAVAILABLE: "NoSessionsAvailable",
+    mavlink2.MAV_FTP_ERR_EOF: "EOF",
+    mavlink2.MAV_FTP_ERR_UNKNOWNCOMMAND: "UnknownCommand",
+    mavlink2.MAV_FTP_ERR_FILEEXISTS: "FileExists",
+    mavlink2.MAV_FTP_ERR_FILEPROTECTED: "FileProtected",
+    mavlink2.MAV_FTP_ERR_FILENOTFOUND: "FileNotFound",
 }
 
 FTP_PAYLOAD_LEN: Final = 251

@@ -10,7 +10,7 @@ from arena_common.mavlink import px4
 from arena_common.mavlink.link import mavlink2
 
 # --- MAVLink ids and enums --------------------------------------------------------------------------
-FILE_TRANSFER_PROTOCOL: Final = 110
+FILE_TRANSFER_PROTOCOL: Final = mavlink2.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL
 COMPONENT_INFORMATION: Final = 395
 COMPONENT_METADATA: Final = 397
 MAV_CMD_REQUEST_MESSAGE: Final = px4.MAV_CMD_REQUEST_MESSAGE

@@ -220,15 +220,3 @@ def test_odometry_args_bad_input() -> None:
         px4.odometry_args(0, (0, 0, 0), (0, 0, 0, 0))
     with pytest.raises(px4.Px4Error, match="3 values"):
         px4.odometry_args(0, (0, 0), (1, 0, 0, 0))
-
-
-def test_every_mavlink_number_is_the_dialects() -> None:
-    """px4.py is the one home of the MAVLink numbers the arena uses: each equals pymavlink's common dialect's."""
-    from pymavlink.dialects.v20 import common as dialect
-
-    names = [n for n in dir(px4) if n.startswith(("MAV_CMD_", "MAV_RESULT_", "MAV_SEVERITY_", "MAV_FRAME_"))]
-    newer = {"MAV_RESULT_CANCELLED"}  # MAVLink's common.xml has it (6); this pymavlink does not yet
-    assert len(names) > 30
-    for name in names:
-        if name not in newer:
-            assert getattr(px4, name) == getattr(dialect, name), name
