@@ -226,10 +226,15 @@ class TelemetryMixin(AutopilotState):
         return lat, lon, proj.alt - self._home[2]
 
     def _send_stream(self, mid: int, t: float) -> None:
+        for send in (self._send_health, self._send_motion, self._send_places):
+            if send(mid, t):
+                return
+
+    def _send_health(self, mid: int, t: float) -> bool:
+        """Send one message of the heartbeat, system status, landed state streams; False: ``mid`` is not one of them."""
         mav = self.conn.mav
         sim = self.sim
         est = sim.estimator
-        boot_ms = int(t * 1000) & 0xFFFFFFFF
         if mid == mavlink2.MAVLINK_MSG_ID_HEARTBEAT:
             main, sub = self.mode
             status = px4.MAV_STATE_STANDBY
@@ -259,7 +264,17 @@ class TelemetryMixin(AutopilotState):
             )  # fmt: skip
         elif mid == mavlink2.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, self.landed_state)
-        elif mid == mavlink2.MAVLINK_MSG_ID_ATTITUDE:
+        else:
+            return False
+        return True
+
+    def _send_motion(self, mid: int, t: float) -> bool:
+        """Send one message of the attitude, position, odometry, the IMU streams; False: ``mid`` is not one of them."""
+        mav = self.conn.mav
+        sim = self.sim
+        est = sim.estimator
+        boot_ms = int(t * 1000) & 0xFFFFFFFF
+        if mid == mavlink2.MAVLINK_MSG_ID_ATTITUDE:
             roll, pitch, yaw = quat_to_euler(est.attitude())
             r = sim.body.rates
             mav.attitude_send(boot_ms, roll, pitch, yaw, r[0], r[1], r[2])
@@ -273,7 +288,7 @@ class TelemetryMixin(AutopilotState):
         elif mid == mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
             proj = self.projection()
             if proj is None or not self._global_ok():
-                return
+                return True
             p, v = est.out_position, est.out_velocity
             lat, lon = proj.reproject(p[0], p[1])
             hdg = round(math.degrees(est.yaw) * 100) % 36000 if math.isfinite(est.yaw) else 0xFFFF
@@ -302,7 +317,16 @@ class TelemetryMixin(AutopilotState):
                 int(t * 1e6), acc[0], acc[1], acc[2], r[0], r[1], r[2], mag[0], mag[1], mag[2],
                 1013.25 - alt * 0.12, 0.0, alt, 25.0, _IMU_UPDATED,
             )  # fmt: skip
-        elif mid == mavlink2.MAVLINK_MSG_ID_BATTERY_STATUS:
+        else:
+            return False
+        return True
+
+    def _send_places(self, mid: int, t: float) -> bool:
+        """Send one message of the battery, estimator, home, mission, origin and version streams; False:
+        ``mid`` is not one of them."""
+        mav = self.conn.mav
+        sim = self.sim
+        if mid == mavlink2.MAVLINK_MSG_ID_BATTERY_STATUS:
             bat = sim.battery
             cells = min(bat.params.cells, 10)
             voltages = [int(bat.cell_voltage() * 1000)] * cells + [0xFFFF] * (10 - cells)
@@ -318,7 +342,7 @@ class TelemetryMixin(AutopilotState):
         elif mid == mavlink2.MAVLINK_MSG_ID_HOME_POSITION:
             proj = self.projection()
             if proj is None or not self._home_set:
-                return
+                return True
             lat, lon, alt = self._home_global(proj)
             h = self._home
             q = (math.cos(self._home_yaw / 2), 0.0, 0.0, math.sin(self._home_yaw / 2))
@@ -350,3 +374,6 @@ class TelemetryMixin(AutopilotState):
             mav.autopilot_version_send(
                 CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, uid
             )
+        else:
+            return False
+        return True

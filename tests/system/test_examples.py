@@ -151,8 +151,8 @@ def test_status_from_a_second_process(sim_arena: tuple[Path, Arena]) -> None:
     assert out.returncode == 0, out.stderr
     for service in (
         "router",
-        "sim_vehicle",
-        "sim_mocap",
+        "sim-vehicle",
+        "sim-motive",
         "mocap",
         "transform",
         "supervisor",

@@ -315,7 +315,7 @@ class Pipeline:
         return {k.rsplit("/", 1)[1] for k in self.bus.alive("arena/sys/alive/test/**")}
 
 
-SERVICE_IDS = ["sim_mocap", "mocap", "transform", "downsampler.d1", "gateway.d1", "recorder"]
+SERVICE_IDS = ["sim-motive", "mocap", "transform", "downsampler.d1", "gateway.d1", "recorder"]
 
 
 @pytest.fixture(scope="module")
@@ -337,7 +337,7 @@ def pipe(tmp_path_factory: pytest.TempPathFactory, deaths: ThreadDeaths) -> Iter
     watch = Watch(bus)
     arena = Arena(cfg, bus=bus, name="fuzz")
     try:
-        svcs["sim_mocap"] = ServiceThread("sim_mocap", services.sim_mocap.main, cfg, host="test")
+        svcs["sim-motive"] = ServiceThread("sim-motive", services.sim_mocap.main, cfg, host="test")
         svcs["mocap"] = ServiceThread("mocap", services.mocap_ingest.main, cfg, host="test")
         svcs["transform"] = ServiceThread("transform", services.frame_transform.main, cfg, host="test")
         svcs["downsampler.d1"] = ServiceThread(
@@ -390,7 +390,7 @@ def test_bad_payloads_on_every_key_are_refused_counted_and_never_reach_the_vehic
         "setpoint": rejected(pipe.watch, "gateway.d1", ("setpoint",)),
         "estop": rejected(pipe.watch, "gateway.d1", ("estop: undecodable",)),
         "recorder": rejected(pipe.watch, "recorder", ("undecodable",)),
-        "sim_mocap": rejected(pipe.watch, "sim_mocap", ("truth",)),
+        "sim-motive": rejected(pipe.watch, "sim-motive", ("truth",)),
     }
     counts = Counter({name: ap.tap.count(name) for name in WATCHED})
     sent: Counter[str] = Counter()
@@ -412,14 +412,14 @@ def test_bad_payloads_on_every_key_are_refused_counted_and_never_reach_the_vehic
         "downsampler.d1": sent[keys.pose("d1")],
         "estop": sent[keys.ESTOP],
         "recorder": sum(sent.values()),
-        "sim_mocap": sent[keys.truth("d1")],
+        "sim-motive": sent[keys.truth("d1")],
     }
     now = {
         "transform": lambda: rejected(pipe.watch, "transform", ("bad_payload",)),
         "downsampler.d1": lambda: rejected(pipe.watch, "downsampler.d1", ("bad_payload",)),
         "estop": lambda: rejected(pipe.watch, "gateway.d1", ("estop: undecodable",)),
         "recorder": lambda: rejected(pipe.watch, "recorder", ("undecodable",)),
-        "sim_mocap": lambda: rejected(pipe.watch, "sim_mocap", ("truth",)),
+        "sim-motive": lambda: rejected(pipe.watch, "sim-motive", ("truth",)),
     }
     # On a loaded computer the downsampler's 16-deep queue may overflow: what it dropped (counted, with
     # legitimate poses) it could not refuse.

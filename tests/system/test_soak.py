@@ -98,14 +98,14 @@ class Soak:
     def services(self) -> list[str]:
         kinds = ("downsampler", "gateway") if DECIMATE == "downsampler" else ("gateway",)
         per_vehicle = [f"{s}.{n}" for n in self.names for s in kinds]
-        return ["router", "sim_vehicle", "sim_mocap", "mocap", "transform", *per_vehicle]
+        return ["router", "sim-vehicle", "sim-motive", "mocap", "transform", *per_vehicle]
 
     def freeze_and_read(self, drain_s: float = 1.5) -> Snapshot:
         """Stop the emulator, let the pipeline drain, and read every service's next stats."""
-        self.up.kill_child("sim_mocap", signal.SIGSTOP)
+        self.up.kill_child("sim-motive", signal.SIGSTOP)
         time.sleep(drain_s)
         t0 = time.monotonic()
-        counted = [s for s in self.services if s != "sim_mocap"]  # frozen: it publishes nothing
+        counted = [s for s in self.services if s != "sim-motive"]  # frozen: it publishes nothing
         wait_for(
             lambda: all(self.watch.fresh_stat(s, t0) is not None for s in counted),
             15.0,
@@ -116,7 +116,7 @@ class Soak:
         return Snapshot(time.monotonic(), stats)
 
     def resume(self) -> None:
-        self.up.kill_child("sim_mocap", signal.SIGCONT)
+        self.up.kill_child("sim-motive", signal.SIGCONT)
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +139,7 @@ def soak(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Soak]:
     rig = Soak(up, watch, names, tmp, tap)
     try:
         t0 = time.monotonic()
-        up.wait_started(["router", "sim_vehicle", "sim_mocap", "mocap", "transform"], 120.0)
+        up.wait_started(["router", "sim-vehicle", "sim-motive", "mocap", "transform"], 120.0)
         try:
             wait_for(
                 lambda: all((s := watch.state(n)) is not None and s.vis_fused for n in names),
@@ -153,7 +153,7 @@ def soak(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Soak]:
         yield rig
     finally:
         try:
-            up.kill_child("sim_mocap", signal.SIGCONT)
+            up.kill_child("sim-motive", signal.SIGCONT)
         except (KeyError, ProcessLookupError):
             pass
         watch.close()

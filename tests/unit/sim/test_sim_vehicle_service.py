@@ -117,7 +117,7 @@ def test_truth_published_for_every_vehicle(
         assert all(i > 0 and abs(i / tick_ns - round(i / tick_ns)) < 1e-3 for i in intervals)
         assert min(intervals) == pytest.approx(tick_ns, abs=1e3)
     # Presence: the service's liveliness token (bounded retries while it propagates through the router).
-    token = keys.alive("simhost", "sim_vehicle")
+    token = keys.alive("simhost", "sim-vehicle")
     assert any(token in bus.alive("arena/sys/alive/**") for _ in range(5))
 
 
