@@ -33,6 +33,13 @@ def _arena() -> Arena:
     return Arena(cfg, connect=g.connect, mode=g.mode, name="arena-cli")
 
 
+def _rtt(s: wire.State) -> str:
+    """The link's round trip and its jitter, in ms."""
+    if s.rtt is None:
+        return ""
+    return f"{1000 * s.rtt:.1f}" + ("" if s.rtt_jit is None else f" ±{1000 * s.rtt_jit:.1f}")
+
+
 class Snapshot:
     """What the bus says right now: services alive, their stats, each vehicle's state."""
 
@@ -93,7 +100,8 @@ class Snapshot:
             "N E D [m]",
             "bat",
             "vision",
-            "rtt ms",
+            "link rtt ms",
+            "stamps",
             "failsafes",
         ):
             vehicles.add_column(col)
@@ -116,7 +124,8 @@ class Snapshot:
                 f"{p[0]:+.2f} {p[1]:+.2f} {p[2]:+.2f}",
                 "" if s.bat is None else f"{100 * s.bat:.0f}%",
                 vision,
-                "" if s.rtt is None else f"{1000 * s.rtt:.1f}",
+                _rtt(s),
+                s.stamps if s.stamps != "arrival" else "[yellow]arrival[/]",
                 ", ".join(s.fs),
             )
         grid = Table.grid()

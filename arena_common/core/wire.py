@@ -240,6 +240,21 @@ class State(Payload, frozen=True):
     bat: Annotated[float, _float("Battery remaining, 0–1", lo=0.0, hi=1.0)] | None = None
     volt: Annotated[float, _float("Battery voltage", unit="V")] | None = None
     rtt: Annotated[float, _float("Link round-trip time from TIMESYNC", unit="s")] | None = None
+    rtt_jit: (
+        Annotated[
+            float, _float("Jitter of the link's round trip (RFC 3550's running mean of changes)", unit="s")
+        ]
+        | None
+    ) = None
+    stamps: Annotated[
+        Str,
+        _doc(
+            "Whose clock stamps vision at the autopilot: 'ours' (PX4's TIMESYNC took the gateway's clock), "
+            "'arrival' (PX4 stamps each sample on arrival: the link's delay is in every one), or empty before "
+            "a round trip was measured",
+            choices=("", "ours", "arrival"),
+        ),
+    ] = _always("")
     hb_age: Annotated[float, _float("Age of the last heartbeat", unit="s")] | None = None
     vis_rate: Annotated[float, _float("Vision samples sent per second", unit="Hz", lo=0.0)] = _always(0.0)
     vis_age: Annotated[float, _float("Age of the last vision sample sent", unit="s")] | None = None

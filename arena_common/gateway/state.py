@@ -362,6 +362,8 @@ class StateReport:
             bat=None if bat is None else min(1.0, max(0.0, bat)),
             volt=s.volt,
             rtt=self.timesync.rtt_s,
+            rtt_jit=self.timesync.jitter_s,
+            stamps=self.timesync.stamps,
             hb_age=s.hb_age(now),
             vis_rate=vis.rate(now),
             vis_age=vis_age,

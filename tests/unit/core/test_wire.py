@@ -283,7 +283,7 @@ def test_random_elements_only_raise_payload_error_naming_the_element(elements: l
 def test_defaults_travel_and_unknown_optional_fields_are_omitted() -> None:
     state = wire.State(t=1)
     raw = state.encode()
-    assert raw[0] == 0x80 | 13  # a fixmap: 13 of State's 22 fields (map16 only from 16 fields on)
+    assert raw[0] == 0x80 | 14  # a fixmap: 14 of State's 24 fields (map16 only from 16 fields on)
     assert msgpack.unpackb(raw) == {
         "t": 1,
         "sysid": 0,
@@ -298,6 +298,7 @@ def test_defaults_travel_and_unknown_optional_fields_are_omitted() -> None:
         "fs": [],
         "tp": 0,
         "auth": "",
+        "stamps": "",
     }
     assert wire.State.decode(raw) == state
     assert msgpack.unpackb(wire.Setpoint(t=1, v=(0.0, 0.0, 0.0)).encode()) == {

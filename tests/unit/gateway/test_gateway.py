@@ -371,6 +371,9 @@ def test_state_telemetry_and_timesync(make_rig: Callable[..., Rig]) -> None:
     assert later is not None
     # Flowing, and never faster than designed (50 Hz vision and state), judged over the time it took.
     assert 10 <= later.vis_rate <= 60, later.vis_rate
+    # The link: round trip and jitter measured (loopback: well under PX4's 10 ms), and whose stamps PX4 uses.
+    assert later.rtt is not None and later.rtt_jit is not None and later.rtt_jit < 0.5
+    assert later.stamps in ("arrival", "ours"), later.stamps
     rig.wait_state("d1", lambda s: s.vis_age is not None and s.vis_age < 0.5, 10.0, "fresh vision")
     assert 20 <= n1 - n0 <= 50 * slept + 10, (n1 - n0, slept)
     # Raw telemetry: every message type, at most 10 Hz each; TIMESYNC requests are not republished.
