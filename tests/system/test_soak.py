@@ -49,6 +49,7 @@ import pytest
 from arena_common.bus.session import Subscription
 from arena_common.core import config as config_mod
 from arena_common.core import wire
+from arena_common.core.services import SIM_PREFIX
 from tests.faultlib import RESULTS_DIR, ArenaUp, Watch, peer_bus, rss_bytes, write_arena_config
 from tests.helpers import wait_for
 
@@ -318,7 +319,9 @@ def test_soak_no_loss_flat_memory_steady_latency(soak: Soak) -> None:
         assert tf_dropped + total["ds_dropped"] <= 0.01 * tf_in, overload
         assert total["on_bus"] - total["gw_sent"] <= 0.01 * total["on_bus"], overload
         assert min(vision_rates) > 0.8 * VISION_HZ, vision_rates
-    arena_growth = {n: g for n, g in growth.items() if not n.startswith("sim_")}  # the simulated world aside
+    arena_growth = {
+        n: g for n, g in growth.items() if not n.startswith(SIM_PREFIX)
+    }  # the simulated world aside
     worst = max(arena_growth.items(), key=lambda kv: kv[1])
     assert worst[1] < 0.05, f"{worst[0]} grew its resident memory by {100 * worst[1]:.1f} %"
     if FULL:  # steady latency: the last third's tail no worse than the first's (a timing: idle machine only)
