@@ -4,6 +4,7 @@ that installs it, exits 2, and prints no traceback."""
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -23,7 +24,20 @@ def bare(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     """The ``arena`` console script of a venv holding the project and its required dependencies only."""
     venv = tmp_path_factory.mktemp("no-extras") / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=INSTALL_S)
-    pip = [str(venv / "bin/python"), "-m", "pip", "install", "-q", "--disable-pip-version-check", str(REPO)]
+    # From a copy of the checkout: pip builds in the source tree, and the checkout keeps no build/ of its own.
+    source = tmp_path_factory.mktemp("source") / "flying-arena"
+    junk = (
+        ".git",
+        ".venv",
+        "build",
+        "*.egg-info",
+        "__pycache__",
+        "node_modules",
+        "recordings",
+        "bench-results",
+    )
+    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(*junk))
+    pip = [str(venv / "bin/python"), "-m", "pip", "install", "-q", "--disable-pip-version-check", str(source)]
     done = subprocess.run(pip, capture_output=True, text=True, timeout=INSTALL_S)
     if done.returncode != 0:
         pytest.skip(f"pip install of the project into a fresh venv failed: {done.stderr[-2000:]}")
