@@ -23,27 +23,20 @@ from __future__ import annotations
 import socket
 import tomllib
 from pathlib import Path
-from typing import Annotated, Any, Literal, Self, get_args
+from typing import Annotated, Any, Literal, get_args
 
 import msgspec
 from msgspec import Meta
 
 from arena_common.core import keys
-from arena_common.core.convert import convert, field_error
-from arena_common.core.endpoints import mirror_connection, udp_listen_port
+from arena_common.core.convert import Spec, convert, field_error
+from arena_common.core.endpoints import udp_listen_port
 from arena_common.core.errors import ConfigError, InvalidName
 from arena_common.core.services import VEHICLE_SERVICES, HostService, VehicleService
+from arena_common.core.vehiclespec import VehicleSpec
 
 ZenohMode = Literal["peer", "client", "router"]
 ZENOH_MODES: tuple[ZenohMode, ...] = get_args(ZenohMode)
-
-
-class Spec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
-    """A section of the config: frozen, typed, every default on its field."""
-
-    def replace(self, **changes: Any) -> Self:
-        """A copy with some fields replaced."""
-        return msgspec.structs.replace(self, **changes)
 
 
 class ArenaSpec(Spec, frozen=True):
@@ -114,77 +107,6 @@ class HostSpec(Spec, frozen=True):
     # Default: both, or only the gateway when the transform decimates (pipeline.decimate).
     vehicle_services: tuple[VehicleService, ...] = VEHICLE_SERVICES
     address: str = ""
-
-
-class SimVehicleSpec(Spec, frozen=True):
-    """Settings of a simulated vehicle (``start`` and ``yaw_deg`` also place a PX4 SITL vehicle)."""
-
-    start: tuple[float, float] = (0.0, 0.0)
-    yaw_deg: float = 0.0
-    mavlink: str = ""  # the simulated autopilot's side; derived from the gateway's string when empty
-
-
-Px4ParamName = Annotated[
-    str,
-    Meta(
-        pattern=r"^[A-Z][A-Z0-9_]{0,15}$",
-        description="PX4 parameter names (capitals, digits, _; up to 16 characters)",
-    ),
-]
-MavlinkName = Annotated[str, Meta(pattern=r"^[A-Z][A-Z0-9_]{0,49}$")]
-
-
-class VehicleSpec(Spec, frozen=True):
-    """One vehicle: its rigid body, its MAVLink link and its pipeline settings."""
-
-    name: str
-    rigid_body: str | int = ""  # the vehicle's name when empty
-    mavlink: str = ""  # a pymavlink connection string; required unless a PX4 SITL instance implies it
-    # udpin links only: the autopilot's "IP:PORT".  The gateway then talks to that address only and drops
-    # (and counts) datagrams from any other; without it, it replies to whoever last sent the vehicle's
-    # frames (on an unsigned link, anyone on the network: docs/safety.md §3.3).
-    mavlink_peer: str = ""
-    # MAV_SYS_ID, never 0 (0: left out); required unless a PX4 SITL instance implies it
-    system_id: Annotated[int, Meta(ge=1, le=250)] = 0
-    vision_rate: Annotated[float, Meta(ge=1.0, le=400.0)] = 50.0
-    max_pose_age: Annotated[float, Meta(ge=0.001, le=1.0)] = 0.1
-    vision_message: Literal["odometry", "vision_position_estimate"] = "odometry"
-    # Rates of what the gateway publishes, while anyone subscribes: arena/<d>/state, and each raw MAVLink
-    # message type on arena/<d>/telemetry/<MSG> (0: none).
-    state_rate: Annotated[float, Meta(ge=1.0, le=200.0)] = 50.0
-    telemetry_rate: Annotated[float, Meta(ge=0.0, le=200.0)] = 10.0
-    # Rates (Hz) the gateway asks the autopilot to stream messages at, by MAVLink name, whenever the link
-    # comes up (MAV_CMD_SET_MESSAGE_INTERVAL; 0 stops the stream): e.g. { ATTITUDE = 10, HIGHRES_IMU = 0 }
-    # (what mavros' stream rates and MAVSDK's set_rate_* do). Every stream PX4 sends, the gateway reads.
-    stream_rates: dict[MavlinkName, Annotated[float, Meta(ge=0.0, le=1000.0)]] = msgspec.field(
-        default_factory=dict
-    )
-    require_setup: bool = True
-    gcs: str = ""
-    signing_key_file: str = ""  # MAVLink 2 signing: a file holding the 32-byte secret key as 64 hex digits
-    sim: SimVehicleSpec = msgspec.field(default_factory=SimVehicleSpec)
-    # What flies it: "sim" (the arena's simulated autopilot, started by the ``sim`` service), "px4" (an
-    # external PX4: hardware, or a SITL started by hand; nothing is started for it) or "px4-sitl" (PX4
-    # SITL instance ``px4_instance``, started by ``arena up`` with its ground-truth bridge).
-    autopilot: Literal["sim", "px4", "px4-sitl"] = "sim"
-    px4_instance: int | None = None  # its range: runtime.px4_sitl_rules
-    px4_params: dict[Px4ParamName, float] = msgspec.field(default_factory=dict)  # PX4 SITL boot parameters
-
-    @property
-    def simulated(self) -> bool:
-        """True when the arena's simulated autopilot flies it."""
-        return self.autopilot == "sim"
-
-    @property
-    def px4_sitl(self) -> bool:
-        """True when ``arena up`` starts a PX4 SITL instance for it."""
-        return self.autopilot == "px4-sitl"
-
-    def sim_mavlink(self) -> str:
-        """The connection string the simulated autopilot uses: the mirror of the gateway's."""
-        if self.sim.mavlink:
-            return self.sim.mavlink
-        return mirror_connection(self.mavlink)
 
 
 class SimSpec(Spec, frozen=True):
@@ -343,6 +265,20 @@ def _vehicle(path: str, name: str, table: dict[str, Any]) -> VehicleSpec:
             f"{where}.sim.mavlink",
             f'no simulated side unless autopilot = "sim" (got {v.autopilot!r})',
             v.sim.mavlink,
+        )
+    if v.sim.link_jitter_ms > v.sim.link_delay_ms:
+        raise field_error(
+            path,
+            f"{where}.sim.link_jitter_ms",
+            f"at most link_delay_ms ({v.sim.link_delay_ms})",
+            v.sim.link_jitter_ms,
+        )
+    if v.sim.link_delay_ms and (v.autopilot != "sim" or v.mavlink_peer or not v.mavlink.startswith("udpin:")):
+        raise field_error(
+            path,
+            f"{where}.sim.link_delay_ms",
+            'a simulated vehicle (autopilot = "sim") on a udpin link without mavlink_peer',
+            v.sim.link_delay_ms,
         )
     if not v.mavlink and not v.px4_sitl:
         raise field_error(

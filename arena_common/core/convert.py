@@ -14,7 +14,7 @@ from __future__ import annotations
 import functools
 import types
 import typing
-from typing import Annotated, Any, Literal, TypeVar, get_args, get_origin
+from typing import Annotated, Any, Literal, Self, TypeVar, get_args, get_origin
 
 import msgspec
 from msgspec import Meta
@@ -22,6 +22,16 @@ from msgspec import Meta
 from arena_common.core.errors import ConfigError
 
 S = TypeVar("S", bound=msgspec.Struct)
+
+
+class Spec(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """A section of the config: frozen, typed, every default on its field."""
+
+    def replace(self, **changes: Any) -> Self:
+        """A copy with some fields replaced."""
+        return msgspec.structs.replace(self, **changes)
+
+
 _KINDS: dict[Any, str] = {int: "an integer", float: "a number", str: "a string", bool: "true or false"}
 
 
@@ -94,28 +104,37 @@ def _choices(t: Any) -> tuple[Any, ...] | None:
     return None
 
 
+def _bounds(t: Any) -> str:
+    """``"ge..le"`` of an ``Annotated`` type with both bounds; "" otherwise."""
+    meta = next((m for m in get_args(t) if isinstance(m, Meta)), None) if get_origin(t) is Annotated else None
+    return f"{meta.ge}..{meta.le}" if meta is not None and meta.ge is not None and meta.le is not None else ""
+
+
 def expected(t: Any, plural: bool = False) -> str:
     """What a value of type ``t`` must be, in words (``plural``: said of a table's keys)."""
     meta = next((m for m in get_args(t) if isinstance(m, Meta)), None) if get_origin(t) is Annotated else None
     if plural:
         return meta.description if meta is not None and meta.description else expected(t)
     if meta is None and (isinstance(t, types.UnionType) or get_origin(t) is typing.Union):
-        return expected(next(a for a in get_args(t) if a is not type(None)))
+        return " or ".join(expected(a) for a in get_args(t) if a is not type(None))
     bare = _bare(t)
     if get_origin(bare) is Literal:
-        return "one of " + ", ".join(str(a) for a in get_args(bare))
+        words = get_args(bare)
+        return f"the word {words[0]}" if len(words) == 1 else "one of " + ", ".join(str(a) for a in words)
     if (choices := _choices(bare)) is not None:
         return "names among " + ", ".join(str(a) for a in choices)
     if get_origin(bare) is tuple:
         args = get_args(bare)
-        if args and args[-1] is not Ellipsis and all(a is float for a in args):
-            return f"a list of {len(args)} numbers"
+        if args and args[-1] is not Ellipsis and all(_bare(a) is float for a in args):
+            each = [_bounds(a) for a in args]
+            within = f" (within {', '.join(b or 'any' for b in each)})" if any(each) else ""
+            return f"a list of {len(args)} numbers{within}"
         return "a list of strings" if args == (str, Ellipsis) else "a list"
     if get_origin(bare) is dict or (isinstance(bare, type) and issubclass(bare, msgspec.Struct)):
         return "a table"
     kind = _KINDS.get(bare, f"a {getattr(bare, '__name__', bare)}")
-    if meta is not None and meta.ge is not None and meta.le is not None:
-        return f"{kind} in {meta.ge}..{meta.le}"
+    if bounds := _bounds(t):
+        return f"{kind} in {bounds}"
     if meta is not None and meta.pattern is not None:
         return f"{kind} matching {meta.pattern}"
     return kind

@@ -382,11 +382,11 @@ class CommandExecutor:
         report = self.setup.check(deadline)
         if not report["complete"]:
             return _result("TIMEOUT", "no parameter answered", **report)
+        notes = "; ".join(report.get("notes", {}).values())
         if report["ok"]:
-            return _result("ACCEPTED", **report)
-        return _result(
-            "FAILED", f"{len(report['wrong']) + len(report['missing'])} parameters differ", **report
-        )
+            return _result("ACCEPTED", notes, **report)
+        differ = f"{len(report['wrong']) + len(report['missing'])} parameters differ"
+        return _result("FAILED", f"{differ}; {notes}" if notes else differ, **report)
 
     def _setup(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
         if self.state.armed:
@@ -416,11 +416,14 @@ class CommandExecutor:
                     **report,
                 )
             verified = self.setup.check(deadline)
-            report = {**report, **verified, "rebooted": True}
+            # What the check before the reboot measured still holds (the link did not change).
+            notes = {**report.get("notes", {}), **verified.get("notes", {})}
+            report = {**report, **verified, "rebooted": True, "notes": notes}
         if report["ok"]:
             rebooted_for = ", ".join(report["reboot_required"])
             note = f" (rebooted for {rebooted_for})" if report.get("rebooted") else ""
-            return _result("ACCEPTED", f"arena parameters set and verified{note}", **report)
+            why = "".join(f"; {text}" for text in report.get("notes", {}).values())
+            return _result("ACCEPTED", f"arena parameters set and verified{note}{why}", **report)
         return _result("FAILED", "; ".join(report["failed"]) or "parameters still differ", **report)
 
     def _ping(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:

@@ -46,6 +46,7 @@ from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.gateway.clockwatch import ClockWatch
 from arena_common.gateway.commands import CommandExecutor
+from arena_common.gateway.evdelay import EvDelay
 from arena_common.gateway.events import EventSink
 from arena_common.gateway.health import Health
 from arena_common.gateway.linkwatch import LinkWatch
@@ -91,8 +92,7 @@ class Gateway:
         self.name = v.name
         self.bus = bus
         self.options = o = options or GatewayOptions()
-        self.state_rate = v.state_rate if o.state_rate is None else o.state_rate
-        self.telemetry_rate = v.telemetry_rate if o.telemetry_rate is None else o.telemetry_rate
+        self.state_rate, self.telemetry_rate = v.state_rate, v.telemetry_rate
         self.stats = stats or Stats()
         self.log = log or logging.getLogger(f"arena.gateway.{v.name}")
         stream_rates = stream_ids(cfg, v.name)  # before opening anything: a bad name is a config error
@@ -101,7 +101,7 @@ class Gateway:
         self.link = MavlinkLink(
             v.mavlink,
             v.system_id,
-            source_system=o.source_system,
+            source_system=v.gateway_system_id,
             source_component=o.source_component,
             signing=self.signing,
             peer=v.mavlink_peer or None,
@@ -111,7 +111,7 @@ class Gateway:
         self.clock_watch = ClockWatch(clock, cfg.clock, self.events)
         self.state = VehicleState(v.system_id, self.events, o.link_timeout)
         self.origin = (
-            GlobalOrigin(self.link, v.system_id, o.origin, self.events) if o.origin is not None else None
+            GlobalOrigin(self.link, v.system_id, v.origin, self.events) if v.origin != "off" else None
         )
         self.timesync = TimeSync(self.link)
         self.vision = VisionSender(
@@ -131,6 +131,7 @@ class Gateway:
             name=v.name, origin=self.origin, options=o, stream_rates=stream_rates,
         )  # fmt: skip
         self.setup = self.linkwatch.setup
+        self.ev_delay = EvDelay(v.name, self.timesync, self.vision, self.setup, self.events)
         self.separation = Separation(self.name, self.cfg.arena.min_separation)
         self.forwarder = self._setpoint_forwarder()
         self.executor = self._command_executor()
@@ -139,8 +140,7 @@ class Gateway:
             fused_tolerance=o.fused_tolerance,
         )  # fmt: skip
         self.telemetry = TelemetryPublisher(bus, v.name, self.telemetry_rate, exclude=(MSG["TIMESYNC"],))
-        gcs_url = o.gcs if o.gcs is not None else v.gcs
-        self.gcs = GcsForwarder(gcs_url, self.link, allow_manual=o.allow_gcs_manual) if gcs_url else None
+        self.gcs = GcsForwarder(v.gcs, self.link, allow_manual=v.allow_gcs_manual) if v.gcs else None
         self.state.on_mode_change.append(self._mode_changed)
         self.state.on_reboot.append(self.linkwatch.rebooted)
         self.state.on_link_change.append(self.linkwatch.link_changed)
@@ -252,7 +252,7 @@ class Gateway:
             self.name,
             self.spec.mavlink,
             self.spec.system_id,
-            self.options.source_system,
+            self.spec.gateway_system_id,
             self.options.source_component,
             f"MAVLink 2 signing with key {self.signing.key.fingerprint}" if self.signing else "unsigned",
         )
@@ -300,6 +300,8 @@ class Gateway:
                 self._every_second(now)
             self.state.supervise(now)
             self.linkwatch.supervise(now)
+            if self.state.link:
+                self.ev_delay.watch(now)
             stop.wait(max(0.0, min(next_state, next_second) - time.monotonic()))
 
     def _every_second(self, now: float) -> None:

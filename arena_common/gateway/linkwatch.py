@@ -8,7 +8,7 @@ default; the arena relies on the offboard-loss and position-loss failsafes, see 
 The link is re-opened when it would not open (every second) or once the autopilot fell silent (every
 ``link_timeout`` s, while no HEARTBEAT comes back).  Whenever the link comes up and after an autopilot
 reboot, the gateway asks the autopilot for its EKF origin and, only if it has none, gives it
-``GatewayOptions.origin`` ((0, 0, 0) by default) with SET_GPS_GLOBAL_ORIGIN, so that PX4 without GPS has
+the vehicle's ``origin`` ((0, 0, 0) by default) with SET_GPS_GLOBAL_ORIGIN, so that PX4 without GPS has
 the global reference its AUTO modes need; an origin the EKF already has (GNSS) is never replaced, which
 would re-base its local frame.  It also asks for ESTIMATOR_STATUS at ``estimator_rate`` (the published
 state carries no position the autopilot marks invalid, nor one dead-reckoned without vision) and for the

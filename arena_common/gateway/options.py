@@ -1,28 +1,47 @@
-"""The tuning of one gateway (:class:`GatewayOptions`); the vehicle's config section gives the rest."""
+"""The internal tuning of one gateway (:class:`GatewayOptions`: timeouts, retries, loop rates).
+
+Every setting a user chooses (link, system ids, rates, ground station, origin) is the vehicle's config
+section, checked with its bounds there (:mod:`arena_common.core.vehiclespec`); a service's flags override
+those fields through :func:`arena_common.core.vehiclespec.override`.  The tuning here is for tests and
+benchmarks; each value is checked against :data:`BOUNDS` when an options object is made.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, fields
 
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
 from arena_common.mavlink.link import mavlink2
 
-__all__ = ["GatewayOptions", "stream_ids"]
+__all__ = ["BOUNDS", "GatewayOptions", "stream_ids"]
+
+#: Each numeric field's allowed range (inclusive).
+BOUNDS: dict[str, tuple[float, float]] = {
+    "source_component": (1, 255),
+    "unwatched_rate": (0.1, 200.0),
+    "idle_rate": (0.1, 200.0),
+    "stream_rate": (2.0, 100.0),  # PX4 needs setpoints at 2 Hz at least to stay in OFFBOARD
+    "link_timeout": (0.1, 60.0),
+    "ack_timeout": (0.01, 30.0),
+    "attempts": (1, 10),
+    "prestream": (0.0, 10.0),
+    "fused_tolerance": (0.001, 10.0),
+    "vision_stale": (0.01, 10.0),
+    "goto_speed": (0.01, 20.0),
+    "goto_climb": (0.01, 10.0),
+    "estimator_rate": (0.0, 100.0),
+}
 
 
 @dataclass(frozen=True, slots=True)
 class GatewayOptions:
     """Tuning of one gateway; the vehicle's config section gives the rest (link, system id, vision)."""
 
-    source_system: int = 245  # our MAVLink system id (255 is QGroundControl's)
     source_component: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
-    # Hz, arena/<drone>/state; None: the vehicle's ``state_rate`` in the config
-    state_rate: float | None = None
     unwatched_rate: float = 10.0  # Hz of the supervisor's checks while nobody subscribes to the state
     idle_rate: float = 2.0  # Hz of them while, besides, the vehicle is disarmed (link loss is 3 s anyway)
-    # Hz per message type on arena/<drone>/telemetry/<MSG> (0: none); None: the vehicle's ``telemetry_rate``
-    telemetry_rate: float | None = None
     stream_rate: float = 20.0  # Hz, offboard setpoints repeated while their lease runs
     link_timeout: float = 3.0  # s without HEARTBEAT = link lost
     ack_timeout: float = 0.8  # s per COMMAND_LONG attempt
@@ -33,12 +52,17 @@ class GatewayOptions:
     send_velocity: bool = True  # put the pose's velocity (when valid) in ODOMETRY
     goto_speed: float = 1.0  # m/s, horizontal speed of the goto carrot (capped by arena.max_speed)
     goto_climb: float = 0.5  # m/s, vertical speed of the goto carrot (capped by arena.max_climb)
-    allow_gcs_manual: bool = False  # forward RC_CHANNELS_OVERRIDE / MANUAL_CONTROL from the GCS
     check_at_start: bool = True  # read the arena parameters whenever the link comes up
-    gcs: str | None = None  # overrides the vehicle's `gcs` connection string when not None
-    # EKF global origin (lat deg, lon deg, alt m AMSL) given to an EKF that has none; None: never sent
-    origin: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
     estimator_rate: float = 5.0  # Hz of ESTIMATOR_STATUS asked for (position validity); 0: not asked
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            if f.name not in BOUNDS:
+                continue
+            lo, hi = BOUNDS[f.name]
+            value = getattr(self, f.name)
+            if not (math.isfinite(value) and lo <= value <= hi):
+                raise ConfigError(f"GatewayOptions.{f.name}: expected a number in {lo}..{hi}, got {value!r}")
 
 
 def stream_ids(cfg: ArenaConfig, vehicle: str) -> dict[int, float]:

@@ -15,20 +15,6 @@ from arena_common.mavlink import px4
 from arena_common.mavlink.link import MSG, MavlinkLink
 
 
-def parse_origin(text: str) -> tuple[float, float, float] | None:
-    """``"LAT,LON,ALT"`` (degrees, degrees, metres above mean sea level) or ``"off"`` (None)."""
-    if text.strip().lower() in ("off", "none", "no"):
-        return None
-    parts = text.split(",")
-    try:
-        lat, lon, alt = (float(p) for p in parts)
-    except ValueError:
-        raise GatewayError(
-            f"origin must be LAT,LON,ALT (degrees, degrees, metres) or off, got {text!r}"
-        ) from None
-    return check_origin((lat, lon, alt))
-
-
 def check_origin(origin: Sequence[float]) -> tuple[float, float, float]:
     """A valid (lat, lon, alt) or :class:`GatewayError` naming the bad value."""
     if len(origin) != 3:

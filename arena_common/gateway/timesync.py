@@ -14,6 +14,7 @@ PX4 v1.16 SITL converged on it after exactly 500 requests (measured).
 from __future__ import annotations
 
 import collections
+import statistics
 import time
 from collections.abc import Callable
 from typing import Any
@@ -22,6 +23,7 @@ from arena_common.mavlink.link import MavlinkLink
 
 PX4_CONVERGENCE_WINDOW = 500  # accepted samples before PX4 uses its offset (Timesync.hpp)
 PX4_MAX_RTT_S = 0.010  # PX4 ignores samples with a longer round trip (Timesync.hpp MAX_RTT_SAMPLE)
+MIN_ROUND_TRIPS = 8  # of our own (one a second) before saying whether PX4 can take our clock
 
 
 class TimeSync:
@@ -56,6 +58,24 @@ class TimeSync:
         it uses their arrival time.  An estimate: PX4 judges each answer by its own round trip, which ours
         measures on the same link."""
         return self.accepted_since_reset >= PX4_CONVERGENCE_WINDOW
+
+    @property
+    def px4_can_converge(self) -> bool | None:
+        """Whether PX4 can take our clock over this link: None until :data:`MIN_ROUND_TRIPS` round trips
+        were measured (since the gateway started or the autopilot rebooted); then whether at least half of
+        the last 16 were under :data:`PX4_MAX_RTT_S` (PX4 drops the others: over a link slower than that,
+        it stamps vision on arrival for good)."""
+        if len(self._samples) < MIN_ROUND_TRIPS:
+            return None
+        fast = sum(1 for rtt, _ in self._samples if rtt < PX4_MAX_RTT_S * 1e9)
+        return 2 * fast >= len(self._samples)
+
+    @property
+    def rtt_median_s(self) -> float | None:
+        """The median of the last 16 round trips (s); None before any."""
+        if not self._samples:
+            return None
+        return statistics.median(rtt for rtt, _ in self._samples) * 1e-9
 
     @property
     def stamps(self) -> str:

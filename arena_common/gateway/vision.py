@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import collections
 import math
+import statistics
 import time
 from collections.abc import Callable
 
@@ -73,6 +74,7 @@ class VisionSender:
         self.last_sent_mono = -math.inf
         self._last_rc: int | None = None
         self._times: collections.deque[float] = collections.deque(maxlen=1024)
+        self._ages: collections.deque[int] = collections.deque(maxlen=256)  # ns, of the last poses sent
         self.source = source  # where the poses come from, named when none arrives
         self.arrived = 0  # poses offered (and samples refused as no pose), ever
         self.last_arrival_mono = -math.inf
@@ -181,6 +183,7 @@ class VisionSender:
         mono = time.monotonic()
         self.last_sent_mono = mono
         self._times.append(mono)
+        self._ages.append((now_ns if clock_given else wire.now_ns()) - t_local)  # a pose's age as it left
         self.stats.count("vision")
         self.stats.count("out")
         return None
@@ -208,6 +211,11 @@ class VisionSender:
         while times and now - times[0] > 1.0:
             times.popleft()
         return float(len(times))
+
+    def sent_age_median(self) -> float | None:
+        """The median age (s, from the mocap's exposure to the frame leaving) of the last 256 poses sent;
+        None before any."""
+        return statistics.median(self._ages) * 1e-9 if self._ages else None
 
     def age(self, now: float) -> float | None:
         """Seconds since the last pose was sent (None before the first)."""

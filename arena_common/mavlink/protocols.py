@@ -233,6 +233,11 @@ class SetupChecker:
         self.params = params
         self.events = events
         self.required = dict(required)
+        # Parameters judged within a tolerance instead of equal (name → how far off is still right).
+        self.tolerance: dict[str, float] = {}
+        # Why a required value is what it is, for a parameter that follows the link (name → words).
+        self.notes: dict[str, str] = {}
+        self.before: Callable[[], None] | None = None  # called first by every check: update ``required``
         self.reboot_required = reboot_required
         self.ok: bool | None = None
         self.report: dict[str, Any] = {}
@@ -253,12 +258,19 @@ class SetupChecker:
                 "want": want,
                 "have": have[0] if have else None,
                 "type": _PARAM_TYPE_NAMES.get(ptype, str(ptype)),
-                "ok": have is not None and param_equal(have[0], want, ptype),
+                "ok": have is not None
+                and (
+                    abs(float(have[0]) - float(want)) <= self.tolerance[name]
+                    if name in self.tolerance
+                    else param_equal(have[0], want, ptype)
+                ),
             }
         return rows
 
     def check(self, deadline: float, *, announce: bool = True) -> dict[str, Any]:
         """Read every required parameter; the report ``{ok, params: {name: {want, have, type, ok}}, …}``."""
+        if self.before is not None:
+            self.before()
         with self._lock:
             got = self.params.read(self.required, deadline)
             rows = self._rows(got)
@@ -271,7 +283,14 @@ class SetupChecker:
                 self.report = report
                 return report
             self.ok = ok
-            report = {"ok": ok, "params": rows, "missing": missing, "wrong": wrong, "complete": True}
+            report = {
+                "ok": ok,
+                "params": rows,
+                "missing": missing,
+                "wrong": wrong,
+                "complete": True,
+                "notes": dict(self.notes),
+            }
             self.report = report
         if announce:
             if ok:

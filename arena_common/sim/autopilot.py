@@ -63,8 +63,8 @@ from arena_common.mavlink import px4
 from arena_common.mavlink.link import mavlink2
 from arena_common.mavlink.px4 import ParamValue
 from arena_common.mavlink.signing import PX4_UNSIGNED, LinkSigning, SigningKey
-from arena_common.mavlink.transports import MavlinkLinkError, parse_serial
 from arena_common.sim.base import MapProjection, SimAutopilotError, TruePose, Vec3
+from arena_common.sim.connection import open_connection
 from arena_common.sim.estimator import PX4_SIH_ESTIMATE_LAG_S, PX4_SIH_WANDER
 from arena_common.sim.flight import FlightMixin
 from arena_common.sim.mavlink_commands import CommandsMixin
@@ -133,6 +133,7 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
         signing_key: SigningKey | None = None,
         estimate_lag: float | None = None,
         ideal: bool = False,
+        link_delay: tuple[float, float] = (0.0, 0.0),
     ) -> None:
         if not 1 <= int(system_id) <= 250:
             raise SimAutopilotError(f"system id must be within 1..250, got {system_id}")
@@ -172,31 +173,7 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
         self._true_pose = TruePose(
             self.clock.now_ns(), self._start, quat_from_euler(0, 0, yaw), (0.0, 0.0, 0.0)
         )
-        try:
-            device, extra = connection, {}
-            if connection.startswith("serial:"):  # the gateway's spelling: serial:DEVICE[:BAUD]
-                device, baud = parse_serial(connection[len("serial:") :], connection)
-                extra = {"baud": baud}
-            self.conn = mavutil.mavlink_connection(
-                device,
-                source_system=self.system_id,
-                source_component=self.COMPONENT_ID,
-                dialect="common",
-                **extra,
-            )
-        except (OSError, ValueError, MavlinkLinkError) as exc:
-            raise SimAutopilotError(f"cannot open MAVLink connection {connection!r}: {exc}") from exc
-        port = getattr(self.conn, "port", None)
-        if connection.startswith("udpout:") and port is not None:
-            # Like PX4 on its link, the vehicle reads whoever sends to its port, but only on the address
-            # that faces its gateway (loopback for a gateway on this computer), never on every interface:
-            # the serial line or radio it stands for is not on the lab's network.
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-                probe.connect(self.conn.destination_addr)
-                port.bind((probe.getsockname()[0], 0))
-        if not type(self.conn.mav).__module__.startswith("pymavlink.dialects.v20."):
-            self.conn.close()
-            raise SimAutopilotError("pymavlink was loaded for MAVLink 1; import this module before pymavlink")
+        self.conn, self.relay = open_connection(connection, self.system_id, self.COMPONENT_ID, link_delay)
         self.connection = connection
         self.signing: LinkSigning | None = None
         if signing_key is not None:
@@ -275,10 +252,12 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
             self.signing.forget_streams()
 
     def close(self) -> None:
-        """Close the MAVLink connection."""
+        """Close the MAVLink connection (and its link-delay relay)."""
         if not self._closed:
             self._closed = True
             self.conn.close()
+            if self.relay is not None:
+                self.relay.close()
 
     def __enter__(self) -> SimAutopilot:
         return self

@@ -27,7 +27,6 @@ KNOWN_LONG = {
     "arena_common/mocap/sources.py:read_csv_take": 112,
     "arena_common/cli/_demo.py:_run": 111,
     "arena_common/sim/estimator.py:Estimator.fuse_vision": 104,
-    "arena_common/sim/autopilot.py:SimAutopilot.__init__": 102,
 }
 
 

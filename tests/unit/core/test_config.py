@@ -4,7 +4,7 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from arena_common.core import config, convert
+from arena_common.core import config, convert, vehiclespec
 from arena_common.core.errors import ConfigError
 from tests.helpers import REPO
 
@@ -93,8 +93,8 @@ def test_every_field_says_what_it_expects_in_words() -> None:
     words = re.compile(
         r"(an integer|a number|a string|true or false|one of |names among |a list of |a table)"
     )
-    structs: list[type[config.Spec]] = [config.ArenaConfig, config.HostSpec, config.VehicleSpec]
-    structs += [*config._SECTIONS.values(), config.SimVehicleSpec]
+    structs: list[type[convert.Spec]] = [config.ArenaConfig, config.HostSpec, vehiclespec.VehicleSpec]
+    structs += [*config._SECTIONS.values(), vehiclespec.SimVehicleSpec]
     for cls in structs:
         for field in msgspec.structs.fields(cls):
             assert words.match(convert.expected(field.type)), (cls.__name__, field.name)

@@ -25,11 +25,13 @@ from arena_common.bus.session import Bus
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
+from arena_common.core.vehiclespec import override
 from arena_common.gateway.gateway import Gateway, GatewayOptions
 from arena_common.mavlink import px4
 from arena_common.pipeline.transform import FleetPublisher
 from arena_common.runtime.service import running
 from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimClock
+from services.mavlink_gateway import overridden
 from tests.helpers import wait_for
 
 SPEED = 2.0
@@ -68,6 +70,7 @@ class Rig:
                 position=(north, east, 0.0),
                 params=params,
                 ideal=ideal,
+                link_delay=(v.sim.link_delay_ms * 1e-3, v.sim.link_jitter_ms * 1e-3),
             )
         self.loop = AutopilotLoop(self.aps.values()).start() if self.aps else None
         self.feeding = dict.fromkeys(self.aps, True)
@@ -251,8 +254,18 @@ def rig_factory(
         simulate: bool = True,
         ideal: bool = True,
         spacing: float = 1.0,
+        vehicle: dict[str, Any] | None = None,
+        link_delay_ms: tuple[float, float] = (0.0, 0.0),
     ) -> Rig:
         cfg = arena_config(n_vehicles=n_vehicles, extra=extra, speed=speed, spacing=spacing)
+        if vehicle:  # settings of every vehicle's section, checked as the config's
+            cfg = cfg.replace(vehicles={n: override(v, vehicle, "rig") for n, v in cfg.vehicles.items()})
+        if link_delay_ms[0]:  # each simulated vehicle behind a slow link: (delay, jitter) ms each way
+            delay, jitter = link_delay_ms
+            sim = {
+                n: v.sim.replace(link_delay_ms=delay, link_jitter_ms=jitter) for n, v in cfg.vehicles.items()
+            }
+            cfg = cfg.replace(vehicles={n: v.replace(sim=sim[n]) for n, v in cfg.vehicles.items()})
         rig = Rig(cfg, bus_factory(), speed=speed, params=params, simulate=simulate, ideal=ideal)
         rigs.append(rig)
         if start:
@@ -513,17 +526,15 @@ def test_without_require_setup_the_autopilot_decides(
         rig.close()
 
 
-def test_state_and_telemetry_rates_come_from_the_vehicle_unless_the_options_say(
+def test_state_and_telemetry_rates_come_from_the_vehicle_unless_a_flag_overrides_them(
     arena_config: Callable[..., ArenaConfig],
 ) -> None:
     cfg = arena_config()
     d1 = cfg.vehicles["d1"].replace(state_rate=20.0, telemetry_rate=2.0)
     cfg = cfg.replace(vehicles={"d1": d1})
-    for options, rates in (
-        (None, (20.0, 2.0)),
-        (GatewayOptions(state_rate=5.0, telemetry_rate=0.0), (5.0, 0.0)),
-    ):
-        gw = Gateway(cfg, "d1", None, options=options)
+    flags = {"--state-rate": 5.0, "--telemetry-rate": 0.0}
+    for c, rates in ((cfg, (20.0, 2.0)), (overridden(cfg, "d1", flags), (5.0, 0.0))):
+        gw = Gateway(c, "d1", None)
         try:
             assert (gw.state_rate, gw.telemetry_rate) == rates
         finally:

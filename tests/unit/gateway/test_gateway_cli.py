@@ -7,7 +7,9 @@ from collections.abc import Callable
 from typer.testing import CliRunner
 
 from arena_common.cli import app
+from arena_common.core.vehiclespec import VehicleSpec
 from arena_common.mavlink import px4
+from services.mavlink_gateway import FLAGS, overridden
 from tests.unit.gateway.test_gateway import Rig, rig_factory  # noqa: F401  (the make_rig fixture)
 
 runner = CliRunner()
@@ -52,3 +54,35 @@ def test_gateway_command_line_help_and_unknown_vehicle(make_rig: Callable[..., R
     rig = make_rig(start=False)
     res = runner.invoke(app, ["run", "gateway", "--vehicle", "nope", "-c", rig.cfg.path])
     assert res.exit_code == 2 and "no vehicle 'nope'" in res.output
+
+
+def test_every_gateway_flag_overrides_a_config_field_within_its_bounds(make_rig: Callable[..., Rig]) -> None:
+    """The config is the one home of a gateway's settings: each flag names one field of the vehicle's
+    section, and a value out of that field's bounds is refused with the config's own words."""
+    rig = make_rig(start=False)
+    res = runner.invoke(app, ["run", "gateway", "--help"], env={"COLUMNS": "200"})
+    for flag, field in FLAGS.items():
+        assert field in VehicleSpec.__struct_fields__, field
+        assert flag in res.output, flag
+    for argv, words in (
+        (["--state-rate", "0.5"], "--state-rate: vehicles.d1.state_rate: expected a number in 1.0..200.0"),
+        (["--telemetry-rate", "-1"], "vehicles.d1.telemetry_rate: expected a number in 0.0..200.0"),
+        (["--sysid", "255"], "--sysid: vehicles.d1.gateway_system_id: expected an integer in 1..254"),
+        (["--origin", "91,0,0"], "vehicles.d1.origin: expected a list of 3 numbers (within -90.0..90.0"),
+        (["--origin", "north"], "or the word off, got 'north'"),
+    ):
+        res = runner.invoke(
+            app, ["run", "gateway", "-v", "d1", "-c", rig.cfg.path, *argv], env={"COLUMNS": "300"}
+        )
+        assert res.exit_code == 2, res.output
+        assert words in " ".join(res.output.split()), res.output
+    # Valid flags land in the vehicle's section, and nowhere else.
+    cfg = overridden(
+        rig.cfg,
+        "d1",
+        {"--origin": "-33.86, 151.21, 5", "--sysid": 200, "--allow-gcs-manual": True, "--gcs": None},
+    )
+    d1 = cfg.vehicle("d1")
+    assert (d1.origin, d1.gateway_system_id, d1.allow_gcs_manual) == ((-33.86, 151.21, 5.0), 200, True)
+    assert d1.gcs == rig.cfg.vehicle("d1").gcs
+    assert overridden(rig.cfg, "d1", {"--origin": "off"}).vehicle("d1").origin == "off"

@@ -357,7 +357,7 @@ def test_gateway_forwards_a_ground_station_to_the_simulated_vehicle(make_rig: Ca
     gport = udp_port()
     gcs_conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{gport}", source_system=255, source_component=190)
     try:
-        rig = make_rig(options=GatewayOptions(gcs=f"udpout:127.0.0.1:{gport}"))
+        rig = make_rig(vehicle={"gcs": f"udpout:127.0.0.1:{gport}"})
         hb = recv(gcs_conn, "HEARTBEAT", 5.0)
         assert hb.get_srcSystem() == 1 and hb.autopilot == px4.MAV_AUTOPILOT_PX4
         gcs_conn.mav.param_request_read_send(1, 1, b"EKF2_EV_CTRL", -1)

@@ -7,16 +7,19 @@ import math
 import socket
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import pytest
 from pymavlink.generator.mavcrc import x25crc
 
+from arena_common.gateway.evdelay import WATCH_PERIOD as EV_WATCH_PERIOD
+from arena_common.gateway.evdelay import tolerance_ms
 from arena_common.gateway.timesync import PX4_CONVERGENCE_WINDOW, PX4_MAX_RTT_S, TimeSync
 from arena_common.mavlink.link import MSG, MavlinkLink
 from tests.conftest import free_port
 from tests.helpers import wait_for
+from tests.unit.gateway.test_gateway import Rig, rig_factory  # noqa: F401  (the make_rig fixture)
 from tests.unit.gateway.test_gateway_link import Pump
 
 TIMESYNC_ID = 111
@@ -212,7 +215,8 @@ def test_a_slow_link_is_measured_and_px4_then_stamps_on_arrival(
         assert (
             ts.rtt_s is not None and ts.rtt_s >= 0.015 and ts.rtt_min_s is not None and ts.rtt_min_s >= 0.015
         )
-        assert ts.jitter_s is not None and 0.001 < ts.jitter_s < 0.010, ts.jitter_s
+        # Round trips alternating 15 and 25 ms: a jitter of some ms (more on a busy machine, never none).
+        assert ts.jitter_s is not None and 0.001 < ts.jitter_s < 0.1, ts.jitter_s
         # PX4's requests: every one answered, none counted as one PX4 could take.
         for seq in range(PX4_CONVERGENCE_WINDOW + 5):
             ts1 = 2_000_000_000 + seq
@@ -223,3 +227,36 @@ def test_a_slow_link_is_measured_and_px4_then_stamps_on_arrival(
         assert ts.fields()["jitter"] == ts.jitter_s and ts.fields()["autopilot_converged"] is False
     finally:
         pump.close()
+
+
+def test_over_a_slow_link_setup_sets_ekf2_ev_delay_from_the_measured_delay_and_drift_is_told(
+    make_rig: Callable[..., Rig],
+) -> None:
+    """A simulated vehicle behind a radio of 30 ± 5 ms each way (the relay of ``sim.link_delay_ms``): the
+    gateway measures the round trip, finds PX4 cannot take its clock (stamps on arrival), and the check
+    then wants EKF2_EV_DELAY at the link's delay; setup writes it and says why.  When the link gets fast
+    again, the gateway warns that the parameter no longer fits."""
+    rig = make_rig(link_delay_ms=(30.0, 5.0))
+    gw, ap = rig.gateways["d1"], rig.aps["d1"]
+    wait_for(lambda: gw.timesync.px4_can_converge is False, 30.0, what="the slow link judged")
+    s = rig.wait_state("d1", lambda s: s.rtt is not None and s.stamps == "arrival")
+    assert s.rtt is not None and s.rtt >= 0.050, s.rtt  # 2 × (30 - 5) ms at least
+    check = rig.cmd("d1", "check")
+    row = check.value["params"]["EKF2_EV_DELAY"]
+    assert check.result == "FAILED" and row["have"] == 0.0 and not row["ok"]
+    assert 25.0 <= row["want"] <= 60.0, row  # half a round trip of 50–70 ms, plus a pose's few ms
+    assert "stamps vision on arrival" in check.reason and "EKF2_EV_DELAY" in check.reason
+    setup = rig.ok("d1", "setup", timeout=20.0)
+    assert "EKF2_EV_DELAY" in setup.reason and "round trip" in setup.reason, setup.reason
+    written = float(ap.param("EKF2_EV_DELAY"))
+    assert 25.0 <= written <= 60.0 and abs(written - row["want"]) <= tolerance_ms(row["want"])
+    # The radio is replaced by a cable: the delay the link needs is 0 again, the gateway says so once.
+    assert ap.relay is not None
+    ap.relay.delay_s, ap.relay.jitter_s = 0.0, 0.0
+    drift = rig.wait_event("d1", lambda e: "the link's delay drifted" in e.text, 40.0, "the drift told")
+    assert f"EKF2_EV_DELAY is {written:g} ms, this link needs 0 ms" in drift.text, drift.text
+    assert (
+        "arena px4 setup d1" in drift.text and drift.sev == 4 and drift.data == {"have": written, "want": 0.0}
+    )
+    time.sleep(EV_WATCH_PERIOD + 1.0)  # the seconds after: told once, not again
+    assert len([e for e in rig.event_list("d1") if "the link's delay drifted" in e.text]) == 1

@@ -35,9 +35,7 @@ from arena_common.cli import app
 from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
-from arena_common.core.errors import GatewayError
 from arena_common.gateway.gateway import Gateway, GatewayOptions
-from arena_common.gateway.origin import parse_origin
 from arena_common.mavlink import px4
 from arena_common.mavlink.link import FrameSplitter, MavlinkLink, mavlink2
 from arena_common.mavlink.signing import (
@@ -317,20 +315,6 @@ def wait_for_frames(link: MavlinkLink, timeout: float) -> list[Any]:
     return []
 
 
-def test_parse_origin() -> None:
-    assert parse_origin("47.397742,8.545594,488") == ORIGIN
-    assert parse_origin("-33.86, 151.21, 5") == (-33.86, 151.21, 5.0)
-    assert parse_origin("off") is None
-    for bad, what in (
-        ("1,2", "LAT,LON,ALT"),
-        ("91,0,0", "latitude"),
-        ("0,181,0", "longitude"),
-        ("0,0,nan", "alt"),
-    ):
-        with pytest.raises(GatewayError, match=what):
-            parse_origin(bad)
-
-
 # ----------------------------------------------------------------------------------- the whole link
 class Tap:
     """A UDP relay between the simulated vehicle (``udpout`` to :attr:`port`) and the gateway's ``udpin``
@@ -499,13 +483,14 @@ def test_signed_flight_origin_and_a_replayed_command(
     caplog.set_level(logging.DEBUG)
     key = generate_key_file(tmp_path / "d1.key")
     cfg = signed_config(tmp_path, router_endpoint, "d1.key")
+    cfg = cfg.replace(vehicles={"d1": cfg.vehicle("d1").replace(origin=ORIGIN)})  # the config's origin
     tap = Tap(int(cfg.vehicle("d1").mavlink.rsplit(":", 1)[1]))
     try:
         rig = SignedRig(
             cfg,
             with_sim_link(cfg, f"udpout:127.0.0.1:{tap.port}"),
             bus_factory(),
-            GatewayOptions(origin=ORIGIN),
+            None,
         )
         rigs.append(rig)
         ap, gw = rig.ap, rig.gw
