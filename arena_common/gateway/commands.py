@@ -383,10 +383,12 @@ class CommandExecutor:
         if not report["complete"]:
             return _result("TIMEOUT", "no parameter answered", **report)
         notes = "; ".join(report.get("notes", {}).values())
-        if report["ok"]:
+        if report["ok"] and not report.get("advice"):
             return _result("ACCEPTED", notes, **report)
-        differ = f"{len(report['wrong']) + len(report['missing'])} parameters differ"
-        return _result("FAILED", f"{differ}; {notes}" if notes else differ, **report)
+        n = len(report["wrong"]) + len(report["missing"]) + len(report.get("advice", []))
+        return _result(
+            "FAILED", f"{n} parameters differ; {notes}" if notes else f"{n} parameters differ", **report
+        )
 
     def _setup(self, args: Mapping[str, Any], deadline: float) -> wire.CommandResult:
         if self.state.armed:

@@ -238,6 +238,8 @@ class SetupChecker:
         # Why a required value is what it is, for a parameter that follows the link (name → words).
         self.notes: dict[str, str] = {}
         self.before: Callable[[], None] | None = None  # called first by every check: update ``required``
+        # Judged, reported and written by setup, but never a reason to refuse arming (``advice``).
+        self.advisory: set[str] = set()
         self.reboot_required = reboot_required
         self.ok: bool | None = None
         self.report: dict[str, Any] = {}
@@ -275,7 +277,9 @@ class SetupChecker:
             got = self.params.read(self.required, deadline)
             rows = self._rows(got)
             missing = [n for n, r in rows.items() if r["have"] is None]
-            wrong = [n for n, r in rows.items() if not r["ok"] and r["have"] is not None]
+            off = [n for n, r in rows.items() if not r["ok"] and r["have"] is not None]
+            wrong = [n for n in off if n not in self.advisory]
+            advice = [n for n in off if n in self.advisory]
             ok = not missing and not wrong
             if missing and len(missing) == len(rows):
                 # Nothing answered: the check did not happen (link down), keep the previous verdict.
@@ -288,6 +292,7 @@ class SetupChecker:
                 "params": rows,
                 "missing": missing,
                 "wrong": wrong,
+                "advice": advice,
                 "complete": True,
                 "notes": dict(self.notes),
             }

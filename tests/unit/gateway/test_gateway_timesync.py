@@ -234,8 +234,9 @@ def test_over_a_slow_link_setup_sets_ekf2_ev_delay_from_the_measured_delay_and_d
 ) -> None:
     """A simulated vehicle behind a radio of 30 ± 5 ms each way (the relay of ``sim.link_delay_ms``): the
     gateway measures the round trip, finds PX4 cannot take its clock (stamps on arrival), and the check
-    then wants EKF2_EV_DELAY at the link's delay; setup writes it and says why.  When the link gets fast
-    again, the gateway warns that the parameter no longer fits."""
+    then wants EKF2_EV_DELAY at the link's delay (advice: a reason to fly worse, never to refuse arming);
+    setup writes it and says why.  When the link gets fast again, the gateway warns, once, that the
+    parameter no longer fits."""
     rig = make_rig(link_delay_ms=(30.0, 5.0))
     gw, ap = rig.gateways["d1"], rig.aps["d1"]
     wait_for(lambda: gw.timesync.px4_can_converge is False, 30.0, what="the slow link judged")
@@ -246,6 +247,7 @@ def test_over_a_slow_link_setup_sets_ekf2_ev_delay_from_the_measured_delay_and_d
     assert check.result == "FAILED" and row["have"] == 0.0 and not row["ok"]
     assert 25.0 <= row["want"] <= 60.0, row  # half a round trip of 50–70 ms, plus a pose's few ms
     assert "stamps vision on arrival" in check.reason and "EKF2_EV_DELAY" in check.reason
+    assert check.value["advice"] == ["EKF2_EV_DELAY"] and check.value["ok"]  # told, but arming is not refused
     setup = rig.ok("d1", "setup", timeout=20.0)
     assert "EKF2_EV_DELAY" in setup.reason and "round trip" in setup.reason, setup.reason
     written = float(ap.param("EKF2_EV_DELAY"))
