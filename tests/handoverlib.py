@@ -5,6 +5,7 @@
   late, each by its own random delay: they overtake one another and the commands sent after them (the
   key is delayed, as a congested link or a relay would);
 - :func:`kinds` — every way a program hands a vehicle over, each with the mode it must leave;
+- :class:`TwistBursts` — ROS 2 ``cmd_vel``: a burst of Twists, then silence (the simulated tier);
 - :class:`Judge` — the ``WATCH`` s after each hand-over returned: no failsafe, no mode change nobody
   asked for, the mode it must be in.
 """
@@ -167,3 +168,44 @@ def kinds(other: Arena) -> list[tuple[str, str, Callable[[Vehicle, float], None]
         ("goto by another program during a stream", "OFFBOARD", goto_by_another),
         ("a stream after a goto", "AUTO.LOITER", stream_after_goto),
     ]
+
+
+class TwistBursts:
+    """ROS 2 ``cmd_vel`` as a ROS 2 node sends it (rmw_zenoh's key and attachment, :mod:`tests.ros2_probe`):
+    a burst of Twists at 50 Hz, then silence.  The call returns once the vehicle holds (AUTO.LOITER): the
+    designed end of a Twist stream, which must come once, after OFFBOARD engaged once, with no failsafe."""
+
+    def __init__(self, probe: Any) -> None:
+        from tests import ros2_probe
+
+        self.rp = ros2_probe
+        self.probe = probe
+        probe.subscribe(probe.find("/rosout"))
+        self._seq = itertools.count(1)
+        self._lock = threading.Lock()
+
+    def started(self, name: str) -> int:
+        """How many velocity streams the bridge has said it started for ``name`` (on /rosout)."""
+        with self.probe.cond:
+            got = list(self.probe.samples.get("/rosout", []))
+        return sum(1 for m, _ in got if m.msg.startswith(f"{name}: velocity stream started"))
+
+    def __call__(self, v: Vehicle, s: float) -> None:
+        rp = self.rp
+        ep = self.probe.find(f"/arena/{v.name}/cmd_vel", kind="MS")
+        gid = v.name.encode().ljust(16, b"\0")[:16]
+        before, t0 = self.started(v.name), wire.now_ns()
+        twist = rp.Twist(rp.Vector3(0.0, -0.2 * s, 0.0), rp.Vector3(0.0, 0.0, 0.0))  # FLU: east by s
+        for _ in range(50):
+            with self._lock:
+                seq = next(self._seq)
+            rp.publish(self.probe.session, ep.keyexpr(), twist.serialize(), seq, gid)
+            time.sleep(0.02)
+        deadline = time.monotonic() + 10.0
+        while not (v.mode == "AUTO.LOITER" and self.started(v.name) > before):
+            assert time.monotonic() < deadline, f"{v.name}: no Hold after the Twists stopped ({v.mode})"
+            time.sleep(0.05)
+        modes = [e.data.get("mode") for e in v.events() if e.t >= t0 and e.kind == "mode"]
+        assert modes in (["AUTO.LOITER"], ["OFFBOARD", "AUTO.LOITER"]), modes  # engaged once, ended once
+        assert self.started(v.name) == before + 1, f"{v.name}: the burst started more than one stream"
+        assert not [e.text for e in v.events() if e.t >= t0 and e.kind == "failsafe"]

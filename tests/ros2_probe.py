@@ -272,6 +272,15 @@ class Probe:
         self._liveliness.undeclare()
 
 
+def open_session(endpoint: str, mode: str = "peer") -> zenoh.Session:
+    """A Zenoh session of a ROS 2 node on the test's router (``mode`` peer or client), no scouting."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", f'"{mode}"')
+    conf.insert_json5("connect/endpoints", f'["{endpoint}"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(conf)
+
+
 def publish(session: zenoh.Session, key: str, cdr: bytes, seq: int, gid: bytes) -> None:
     """Publish as an rmw_zenoh publisher would: the CDR payload with its attachment."""
     import time

@@ -3,9 +3,11 @@ and reordering setpoints against commands — each judged for the 3 s after the 
 
 Simulated vehicles flying as PX4 does (the ``px4`` fidelity: they wander), real gateways, real Zenoh.  The
 program's setpoints reach the bus 50–300 ms late, each by its own random delay (tests/handoverlib.py).
-After each hand-over returns, the 3 s that follow must show no failsafe and no mode change nobody asked
-for; the whole flight must show no failsafe landing.  docs/safety.md §2.1 gives the rules; the same flows,
-fewer, fly PX4 SITL in tests/px4/test_px4_handover.py.
+ROS 2 Twist bursts and their silences take turns with the program's hand-overs (the ``ros2`` service on
+the same bus, fed as an rmw_zenoh node feeds it).  After each hand-over returns, the 3 s that follow must
+show no failsafe and no mode change nobody asked for; the whole flight must show no failsafe landing.
+docs/safety.md §2.1 gives the rules; the program's flows, fewer, fly PX4 SITL in
+tests/px4/test_px4_handover.py.
 """
 
 from __future__ import annotations
@@ -17,7 +19,10 @@ from collections.abc import Callable, Iterator
 import pytest
 
 from arena_common import Arena
-from tests.handoverlib import Judge, delay_setpoints, kinds
+from arena_common.client.vehicle import Vehicle
+from services import ros2 as ros2_service
+from tests.handoverlib import Judge, TwistBursts, delay_setpoints, kinds
+from tests.ros2_probe import Probe, open_session
 from tests.unit.gateway.test_gateway import Rig, rig_factory  # noqa: F401  (the make_rig fixture)
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(900)]
@@ -30,12 +35,35 @@ def rig(make_rig: Callable[..., Rig]) -> Iterator[Rig]:
     yield make_rig(n_vehicles=3, speed=1.0, ideal=False, spacing=1.5)
 
 
-def test_hand_overs_with_setpoints_delayed_and_reordered(rig: Rig) -> None:
+@pytest.fixture
+def twists(router_endpoint: str, rig: Rig) -> Iterator[TwistBursts]:
+    """The ros2 service beside the rig, and a ROS 2 node's Twists through it."""
+    stop = threading.Event()
+    service = threading.Thread(
+        target=ros2_service.main, args=(rig.cfg,), kwargs={"host": "handover", "stop": stop}, daemon=True
+    )
+    service.start()
+    session = open_session(router_endpoint)
+    probe = Probe(session)
+    try:
+        yield TwistBursts(probe)
+    finally:
+        probe.close()
+        session.close()
+        stop.set()
+        service.join(10.0)
+    assert not service.is_alive()
+
+
+def test_hand_overs_with_setpoints_delayed_and_reordered(rig: Rig, twists: TwistBursts) -> None:
     program = Arena(rig.cfg, name="handover-program")
     other = Arena(rig.cfg, name="handover-other")
     delayed = delay_setpoints(program.bus, seed=32)
     judge = Judge()
-    flows = kinds(other)
+    flows: list[tuple[str, str, Callable[[Vehicle, float], None]]] = [
+        *kinds(other),
+        ("ROS 2 Twist burst, then silence", "AUTO.LOITER", twists),
+    ]
     errors: list[BaseException] = []
     per_vehicle = -(-HANDOVERS // len(rig.cfg.vehicles))  # every vehicle its share, rounded up
 
@@ -71,9 +99,11 @@ def test_hand_overs_with_setpoints_delayed_and_reordered(rig: Rig) -> None:
         assert sum(p.delayed for p in delayed) >= 10 * HANDOVERS
         dropped = sum(gw.forwarder.dropped for gw in rig.gateways.values())
         assert dropped > 0  # late setpoints of ended streams, and overtaken ones, were dropped and counted
+        bursts = sum(twists.started(name) for name in rig.cfg.vehicles)
+        assert bursts == judge.count["ROS 2 Twist burst, then silence"], bursts  # each engaged once
         print(
             f"\nhand-overs: {judge.count}; setpoints delayed: {sum(p.delayed for p in delayed)}; "
-            f"dropped: {dropped}"
+            f"dropped: {dropped}; Twist streams: {bursts}"
         )
     finally:
         program.close()

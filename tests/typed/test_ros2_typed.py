@@ -16,7 +16,7 @@ import pytest
 import zenoh
 
 from tests.helpers import free_port, wait_for
-from tests.ros2_probe import Probe
+from tests.ros2_probe import Probe, open_session
 from tests.typed.harness import Command, stops_cleanly
 
 CONFIG = """
@@ -41,11 +41,7 @@ def probe_at() -> Iterator[Callable[[str], Probe]]:
     made: list[tuple[Probe, zenoh.Session]] = []
 
     def make(endpoint: str) -> Probe:
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"client"')
-        conf.insert_json5("connect/endpoints", f'["{endpoint}"]')
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        session = zenoh.open(conf)
+        session = open_session(endpoint, "client")
         probe = Probe(session)
         made.append((probe, session))
         return probe

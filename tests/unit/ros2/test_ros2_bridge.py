@@ -12,7 +12,6 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-import zenoh
 
 from arena_common import Arena
 from arena_common.bus.session import Bus
@@ -21,21 +20,13 @@ from arena_common.ros2 import names, types
 from services import ros2 as ros2_service
 from tests import ros2_probe
 from tests.helpers import Proc, service_argv, write_config
-from tests.ros2_probe import Probe
+from tests.ros2_probe import Probe, open_session
 from tests.unit.gateway.test_gateway import Rig, rig_factory  # noqa: F401  (the make_rig fixture)
-
-
-def _session(router_endpoint: str) -> zenoh.Session:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("connect/endpoints", f'["{router_endpoint}"]')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(conf)
 
 
 @pytest.fixture
 def probe(router_endpoint: str) -> Iterator[Probe]:
-    session = _session(router_endpoint)
+    session = open_session(router_endpoint)
     p = Probe(session)
     try:
         yield p
