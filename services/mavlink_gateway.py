@@ -14,6 +14,7 @@ from typing import Annotated, Any
 
 import typer
 
+from arena_common.bus.exposure import check_exposure
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
@@ -59,7 +60,9 @@ FLAGS: dict[str, str] = {
 
 def overridden(cfg: ArenaConfig, vehicle: str, given: dict[str, Any]) -> ArenaConfig:
     """``cfg`` with the flags ``given`` (flag → value; None: not given) in the vehicle's section, each
-    checked against the config field's own bounds; :class:`typer.BadParameter` naming flag and field."""
+    checked against the config field's own bounds, the whole against the network-exposure rules (a
+    ``--gcs`` listening beyond loopback is refused as in the config); :class:`typer.BadParameter` naming
+    flag and field."""
     v = cfg.vehicle(vehicle)
     for flag, value in given.items():
         if value is None:
@@ -70,7 +73,12 @@ def overridden(cfg: ArenaConfig, vehicle: str, given: dict[str, Any]) -> ArenaCo
             v = override(v, {FLAGS[flag]: value}, flag)
         except ConfigError as exc:
             raise typer.BadParameter(str(exc)) from None
-    return cfg.replace(vehicles={**cfg.vehicles, vehicle: v})
+    cfg = cfg.replace(vehicles={**cfg.vehicles, vehicle: v})
+    try:
+        check_exposure(cfg)  # a flag may not open to the network what the config may not
+    except ConfigError as exc:
+        raise typer.BadParameter(f"with the flags given: {exc}") from None
+    return cfg
 
 
 def _numbers(text: str) -> list[float] | str:

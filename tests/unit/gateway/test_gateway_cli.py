@@ -70,6 +70,11 @@ def test_every_gateway_flag_overrides_a_config_field_within_its_bounds(make_rig:
         (["--sysid", "255"], "--sysid: vehicles.d1.gateway_system_id: expected an integer in 1..254"),
         (["--origin", "91,0,0"], "vehicles.d1.origin: expected a list of 3 numbers (within -90.0..90.0"),
         (["--origin", "north"], "or the word off, got 'north'"),
+        # A flag opens to the network no more than the config may (docs/safety.md: ground-station links).
+        (
+            ["--gcs", "udpin:0.0.0.0:14550"],
+            "vehicles.d1.gcs: expected a ground-station link on loopback only",
+        ),
     ):
         res = runner.invoke(
             app, ["run", "gateway", "-v", "d1", "-c", rig.cfg.path, *argv], env={"COLUMNS": "300"}
