@@ -220,7 +220,7 @@ def test_kill_9_keeps_everything_before_the_last_flush(
         wait_for(
             lambda: file_counts(path).get("arena/d1/pose", 0) > 180, 20, 0.2, "a second of poses on disk"
         )
-        t_kill = time.monotonic()
+        on_disk = file_counts(path)["arena/d1/pose"]  # flushed before the kill, however late (a busy host)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=10)
         time.sleep(0.1)
@@ -235,8 +235,7 @@ def test_kill_9_keeps_everything_before_the_last_flush(
     fns = [m.wire_map()["fn"] for m in reader.messages() if m.channel.key == "arena/d1/pose"]  # type: ignore[index]
     assert not reader.complete
     assert fns == list(range(1, len(fns) + 1)), "a hole in what was read"
-    durable = [fn for fn, t in published if t < t_kill - 0.25 - 0.5]  # flush period + scheduling slack
-    assert durable and fns[-1] >= durable[-1]
+    assert len(fns) >= on_disk > 180  # everything flushed before the kill is still there
     assert fns[-1] < published[-1][0]  # what came after the kill is not there
 
     res = runner.invoke(app, ["rec", "repair", str(path)])
