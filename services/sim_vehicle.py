@@ -82,7 +82,7 @@ def build_autopilots(
                     signing_key=vehicle_key(cfg, name),
                     estimate_lag=estimate_lag,
                     ideal=cfg.sim.fidelity == "ideal",
-                    link_delay=(v.sim.link_delay_ms * 1e-3, v.sim.link_jitter_ms * 1e-3),
+                    link_delay=v.sim.link_delay_s,
                 )
             )
     except BaseException:

@@ -38,6 +38,11 @@ class SimVehicleSpec(Spec, frozen=True):
     link_delay_ms: Annotated[float, Meta(ge=0.0, le=500.0)] = 0.0
     link_jitter_ms: Annotated[float, Meta(ge=0.0, le=500.0)] = 0.0
 
+    @property
+    def link_delay_s(self) -> tuple[float, float]:
+        """(delay, jitter) in seconds, each way, as the simulated autopilot takes them."""
+        return (self.link_delay_ms * 1e-3, self.link_jitter_ms * 1e-3)
+
 
 Px4ParamName = Annotated[
     str,

@@ -55,42 +55,36 @@ class EvDelay:
         setup.before = self.prepare
         setup.advisory.add(EV_DELAY)  # a slow link flies worse, not unsafely: told, never refused
 
-    def wanted_ms(self) -> float | None:
-        """The delay (ms) the link needs: 0 while PX4 can take our clock, the pose's age as it leaves plus
-        half the round trip while it cannot; None until the link was measured."""
+    def need(self) -> tuple[float, str] | None:
+        """The delay (ms) the link needs and why, in words: 0 while PX4 can take our clock, half the round
+        trip plus a pose's age as it leaves while it cannot; None until the link was measured."""
         can = self.timesync.px4_can_converge
         rtt = self.timesync.rtt_median_s
         if can is None or rtt is None:
             return None
         if can:
-            return self.default_ms
-        return float(round((rtt / 2.0 + (self.vision.sent_age_median() or 0.0)) * 1000.0))
-
-    def why(self, want_ms: float) -> str:
-        """The measured reason for ``want_ms``, in words."""
-        rtt = self.timesync.rtt_median_s
-        if rtt is None:
-            return "the link is not measured yet"
-        if want_ms == self.default_ms and self.timesync.px4_can_converge:
-            return f"this link's round trip is {rtt * 1e3:.0f} ms: PX4 takes the gateway's clock"
-        age = self.vision.sent_age_median()
-        return (
-            f"this link's round trip is {rtt * 1e3:.0f} ms (PX4 drops round trips of "
-            f"{PX4_MAX_RTT_S * 1e3:.0f} ms or more and stamps vision on arrival): half of it"
-            + (f" plus a pose's {age * 1e3:.0f} ms age as it leaves the gateway" if age is not None else "")
+            return (
+                self.default_ms,
+                f"this link's round trip is {rtt * 1e3:.0f} ms: PX4 takes the gateway's clock",
+            )
+        age = self.vision.sent_age_median() or 0.0
+        why = (
+            f"this link's round trip is {rtt * 1e3:.0f} ms (PX4 drops round trips of {PX4_MAX_RTT_S * 1e3:.0f} "
+            f"ms or more and stamps vision on arrival): half of it plus a pose's {age * 1e3:.0f} ms age as it "
+            "leaves the gateway"
         )
+        return float(round((rtt / 2.0 + age) * 1000.0)), why
 
     def prepare(self) -> None:
         """Before a check: the wanted value and its tolerance (anything while the link is unmeasured)."""
-        want = self.wanted_ms()
-        if want is None:
-            self.setup.required[EV_DELAY] = (self.default_ms, px4.MAV_PARAM_TYPE_REAL32)
-            self.setup.tolerance[EV_DELAY] = math.inf
-            self.setup.notes.pop(EV_DELAY, None)
-            return
+        need = self.need()
+        want = self.default_ms if need is None else need[0]
         self.setup.required[EV_DELAY] = (want, px4.MAV_PARAM_TYPE_REAL32)
-        self.setup.tolerance[EV_DELAY] = tolerance_ms(want)
-        self.setup.notes[EV_DELAY] = f"{EV_DELAY} {want:g} ms: {self.why(want)}"
+        self.setup.tolerance[EV_DELAY] = math.inf if need is None else tolerance_ms(want)
+        if need is None:
+            self.setup.notes.pop(EV_DELAY, None)
+        else:
+            self.setup.notes[EV_DELAY] = f"{EV_DELAY} {want:g} ms: {need[1]}"
 
     def watch(self, now: float) -> None:
         """Every :data:`WATCH_PERIOD` s: an event when the delay the link needs drifted from the value the
@@ -99,16 +93,16 @@ class EvDelay:
             return
         self._next_watch = now + WATCH_PERIOD
         row = self.setup.report.get("params", {}).get(EV_DELAY)
-        want = self.wanted_ms()
-        if row is None or row.get("have") is None or want is None:
+        need = self.need()
+        if row is None or row.get("have") is None or need is None:
             return
-        have = float(row["have"])
+        (want, why), have = need, float(row["have"])
         off = abs(have - want) > tolerance_ms(want)
         if off and not self.drifted:
             self.events.emit(
                 "setup",
                 f"the link's delay drifted: {EV_DELAY} is {have:g} ms, this link needs {want:g} ms "
-                f"({self.why(want)}): run `arena px4 setup {self.name}` on the ground",
+                f"({why}): run `arena px4 setup {self.name}` on the ground",
                 4,
                 have=have,
                 want=want,

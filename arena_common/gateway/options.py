@@ -9,7 +9,7 @@ benchmarks; each value is checked against :data:`BOUNDS` when an options object 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ConfigError
@@ -56,13 +56,10 @@ class GatewayOptions:
     estimator_rate: float = 5.0  # Hz of ESTIMATOR_STATUS asked for (position validity); 0: not asked
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            if f.name not in BOUNDS:
-                continue
-            lo, hi = BOUNDS[f.name]
-            value = getattr(self, f.name)
+        for name, (lo, hi) in BOUNDS.items():
+            value = getattr(self, name)
             if not (math.isfinite(value) and lo <= value <= hi):
-                raise ConfigError(f"GatewayOptions.{f.name}: expected a number in {lo}..{hi}, got {value!r}")
+                raise ConfigError(f"GatewayOptions.{name}: expected a number in {lo}..{hi}, got {value!r}")
 
 
 def stream_ids(cfg: ArenaConfig, vehicle: str) -> dict[int, float]:

@@ -183,7 +183,7 @@ class VisionSender:
         mono = time.monotonic()
         self.last_sent_mono = mono
         self._times.append(mono)
-        self._ages.append((now_ns if clock_given else wire.now_ns()) - t_local)  # a pose's age as it left
+        self._ages.append(now_ns - t_local)  # the pose's age when it was judged fresh and sent
         self.stats.count("vision")
         self.stats.count("out")
         return None

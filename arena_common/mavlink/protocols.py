@@ -251,6 +251,12 @@ class SetupChecker:
         self.ok = None
         self.reboot_pending = ()
 
+    def _right(self, name: str, have: px4.ParamValue, want: px4.ParamValue, ptype: int) -> bool:
+        """Equal (as the autopilot stores it), or within the parameter's :attr:`tolerance` when it has one."""
+        if name in self.tolerance:
+            return abs(float(have) - float(want)) <= self.tolerance[name]
+        return param_equal(have, want, ptype)
+
     def _rows(self, got: Mapping[str, tuple[px4.ParamValue, int]]) -> dict[str, dict[str, Any]]:
         rows: dict[str, dict[str, Any]] = {}
         for name, (want, want_type) in self.required.items():
@@ -260,12 +266,7 @@ class SetupChecker:
                 "want": want,
                 "have": have[0] if have else None,
                 "type": _PARAM_TYPE_NAMES.get(ptype, str(ptype)),
-                "ok": have is not None
-                and (
-                    abs(float(have[0]) - float(want)) <= self.tolerance[name]
-                    if name in self.tolerance
-                    else param_equal(have[0], want, ptype)
-                ),
+                "ok": have is not None and self._right(name, have[0], want, ptype),
             }
         return rows
 

@@ -70,7 +70,7 @@ class Rig:
                 position=(north, east, 0.0),
                 params=params,
                 ideal=ideal,
-                link_delay=(v.sim.link_delay_ms * 1e-3, v.sim.link_jitter_ms * 1e-3),
+                link_delay=v.sim.link_delay_s,
             )
         self.loop = AutopilotLoop(self.aps.values()).start() if self.aps else None
         self.feeding = dict.fromkeys(self.aps, True)
