@@ -51,7 +51,9 @@ WATCH_3D = (
     "watch in 3D: `arena view` in another terminal, then Foxglove → Open connection → "
     "ws://127.0.0.1:8765 with the layout deploy/foxglove/arena.json (docs/viewer.md)"
 )
-LAND_TIMEOUT = 10.0  # s to wait for the vehicles to land once the demo is asked to stop
+# s to wait for the vehicles to land once the demo is asked to stop: PX4 v1.16 takes 8.9-10.3 s from 1 m
+# to landed and disarmed (its crawl below 1 m, its land detector, COM_DISARM_LAND; docs/px4.md, parity).
+LAND_TIMEOUT = 20.0
 STOP_TIMEOUT = 20.0  # s for the supervisor to stop its services before it is killed
 RESEND_LAND = 2.0  # s between land orders to a vehicle still flying (not landing) while stopping
 FLEET_RADIUS = 0.3  # m: the circle a fleet's grid flies around its spots

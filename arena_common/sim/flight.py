@@ -370,33 +370,47 @@ class FlightMixin(AutopilotState):
         speed = self._cruise_speed if self._cruise_speed > 0 else float(self.params.get("MPC_XY_CRUISE"))
         return min(speed, float(self.params.get("MPC_XY_VEL_MAX")))
 
+    def _brake(self, speed: float, tau: float) -> tuple[float, float]:
+        """(distance, speed) ``tau`` seconds into PX4's Hold braking from ``speed``: a jerk-limited stop
+        (MPC_JERK_AUTO, deceleration at most MPC_ACC_HOR), as PX4 v1.16 SITL was measured to stop (the
+        parity tier: 14–21 cm and 0.65–1.4 s from 0.35–0.38 m/s, against v·√(v/j) = 11–12 cm in
+        2√(v/j) = 0.6 s; the navigator's braking point v·(v/(2·a) + 0.6 s) lies beyond where it stops)."""
+        j = float(self.params.get("MPC_JERK_AUTO"))
+        a = float(self.params.get("MPC_ACC_HOR"))
+        t1 = min(math.sqrt(speed / j), a / j)  # deceleration ramps up (and later down) for t1
+        peak = j * t1
+        t2 = max(0.0, (speed - peak * t1) / peak)  # then holds at its peak, when that peak is MPC_ACC_HOR
+        tau = min(max(tau, 0.0), 2 * t1 + t2)
+        if tau <= t1:
+            return speed * tau - j * tau**3 / 6, speed - j * tau**2 / 2
+        s, v = speed * t1 - j * t1**3 / 6, speed - j * t1**2 / 2
+        d = min(tau - t1, t2)
+        s, v = s + v * d - peak * d * d / 2, v - peak * d
+        d = tau - t1 - t2
+        if d > 0:
+            s, v = s + v * d - peak * d * d / 2 + j * d**3 / 6, v - peak * d + j * d * d / 2
+        return s, max(v, 0.0)
+
     def _braking_point(self) -> Vec3:
-        """Where PX4's Hold stops a moving multicopter: the estimate moved along its horizontal course by
-        PX4's braking distance v·(v / (2·MPC_ACC_HOR) + 0.6 s) (navigator ``calculate_breaking_stop``,
-        ``computeBrakingDistanceFromVelocity`` with a delay acceleration of 0.6·MPC_JERK_AUTO)."""
+        """Where Hold stops a moving multicopter: the estimate moved along its horizontal course by the
+        distance of :meth:`_brake`'s whole stop."""
         est = self.sim.estimator
         p, v = est.out_position, est.out_velocity
         speed = math.hypot(v[0], v[1])
         if self.ideal or self.sim.landed or speed < 1e-3:
             return p
-        jerk = float(self.params.get("MPC_JERK_AUTO"))
-        dist = speed * (speed / (2.0 * float(self.params.get("MPC_ACC_HOR"))) + 0.6 * jerk / jerk)
+        dist, _ = self._brake(speed, math.inf)
         return (p[0] + v[0] / speed * dist, p[1] + v[1] / speed * dist, p[2])
 
     def _brake_setpoint(self, t: float, nav: dict[str, Any]) -> Setpoint:
-        """The way to the braking point: on at the entry speed for 0.6 s, then slowing at MPC_ACC_HOR
-        (the profile behind PX4's braking distance), with its velocity as feed-forward."""
+        """The way to the braking point along :meth:`_brake`'s profile, with its velocity as feed-forward."""
         t0, p0, (vn, ve) = nav["brake"]
         speed = math.hypot(vn, ve)
-        acc = float(self.params.get("MPC_ACC_HOR"))
-        tau = max(0.0, t - t0)
-        if tau <= 0.6:
-            s, v = speed * tau, speed
-        else:
-            dt = min(tau - 0.6, speed / acc)
-            s, v = speed * 0.6 + speed * dt - 0.5 * acc * dt * dt, speed - acc * dt
-        if v <= 0.0:
+        s, v = self._brake(speed, t - t0)
+        if v <= 0.0:  # stopped: Hold keeps where it stopped (PX4 flies no way back to its braking point)
             nav["braked"] = True
+            here = self.sim.estimator.out_position
+            nav["hold"] = (here[0], here[1], nav["hold"][2])
             return Setpoint.hold(nav["hold"], nav["yaw"])
         un, ue = vn / speed, ve / speed
         return Setpoint(
@@ -422,7 +436,7 @@ class FlightMixin(AutopilotState):
             self._nav["hold"] = self._braking_point()
             v = est.out_velocity
             if self._nav["hold"] != est.out_position:  # braking: a smooth path to the point, as PX4's
-                self._nav["brake"] = (self.clock.now(), est.out_position, (v[0], v[1]))
+                self._nav["brake"] = (self.sim.time, est.out_position, (v[0], v[1]))
         if self.mode == (px4.MAIN_AUTO, px4.AUTO_RTL):
             home, p = self._home, est.out_position
             alt = p[2]
@@ -440,8 +454,19 @@ class FlightMixin(AutopilotState):
             return Setpoint.hold(target, yaw)
         return Setpoint.hold((p[0] + dx / dist * step, p[1] + dy / dist * step, target[2]), yaw)
 
+    def _land_speed(self) -> float:
+        """Land's descent speed: MPC_LAND_SPEED above MPC_LAND_ALT2, MPC_LAND_CRWL below MPC_LAND_ALT3,
+        graded in between, by the height above home.  PX4 v1.16 SITL crawls so without a distance sensor
+        (the parity tier: 3.6 s from 1.1 m to the floor, where MPC_LAND_SPEED alone would take ~1.7 s)."""
+        fast, crawl = float(self.params.get("MPC_LAND_SPEED")), float(self.params.get("MPC_LAND_CRWL"))
+        alt2, alt3 = float(self.params.get("MPC_LAND_ALT2")), float(self.params.get("MPC_LAND_ALT3"))
+        height = self._home[2] - self.sim.estimator.out_position[2] if self._home_set else 0.0
+        if height >= alt2 or alt2 <= alt3:
+            return fast if height >= alt2 else crawl
+        return crawl + (fast - crawl) * min(1.0, max(0.0, (height - alt3) / (alt2 - alt3)))
+
     def _land_setpoint(self, hold: Vec3, yaw: float) -> Setpoint:
-        speed = float(self.params.get("MPC_LAND_SPEED"))
+        speed = self._land_speed()
         return Setpoint(position=(hold[0], hold[1], NAN), velocity=(NAN, NAN, speed), yaw=yaw)
 
     def _navigate(self, t: float) -> None:

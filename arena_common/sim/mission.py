@@ -302,7 +302,7 @@ class MissionMixin(AutopilotState):
                 sim.setpoint = self._carrot((target[0], target[1], here[2]), yaw)
             else:
                 nav["landing"] = True
-                speed = float(self.params.get("MPC_LAND_SPEED"))
+                speed = self._land_speed()
                 sim.setpoint = Setpoint(
                     position=(target[0], target[1], NAN), velocity=(NAN, NAN, speed), yaw=yaw
                 )

@@ -51,6 +51,9 @@ SIM_EXTRA_DEFAULTS: Final[Mapping[str, tuple[ParamValue, int]]] = {
     "COM_DL_LOSS_T": (10, _I),  # s without a ground station before the data link counts as lost
     "COM_FAIL_ACT_T": (5.0, _F),  # s of Hold before a (delayable) failsafe action
     "NAV_ACC_RAD": (10.0, _F),  # m, default acceptance radius of mission waypoints
+    "MPC_LAND_CRWL": (0.3, _F),  # m/s, Land's descent below MPC_LAND_ALT3 (height above home)
+    "MPC_LAND_ALT2": (5.0, _F),  # m: below it Land descends at MPC_LAND_SPEED
+    "MPC_LAND_ALT3": (1.0, _F),  # m: below it at MPC_LAND_CRWL, graded in between
 }
 
 DATA_FILE: Final = Path(__file__).resolve().parents[1] / "data" / "px4_reboot_required.json"

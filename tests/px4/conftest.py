@@ -110,7 +110,9 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
     vehicle's gateway reports its link and, when ``fused`` (default: with the "arena" preset), vision
     fused, setup verified and PX4's own pre-flight checks passed.  ``require_setup`` false lets the
     gateways arm a PX4 whose parameters differ from the arena's; ``keep_log`` keeps PX4's ULog
-    (:meth:`Px4Stack.ulog`).  Everything stops at the end of the test; logs stay in ``tmp_path``.
+    (:meth:`Px4Stack.ulog`); ``simulated`` flies the same config's vehicles on the arena's simulated
+    autopilot instead, as the parity tier compares them.  Everything stops at the end of the test; logs
+    stay in ``tmp_path``.
     """
     taken: list[int] = []
     stacks: list[tuple[Px4Stack, Arena]] = []
@@ -124,13 +126,15 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
         require_setup: bool = True,
         fused: bool | None = None,
         keep_log: bool = False,
+        simulated: bool = False,
     ) -> tuple[Px4Stack, Arena]:
         if fused is None:
             fused = preset == "arena"
         instances = {}
         for name in vehicles:
-            instances[name] = px4_pool.take()
-            taken.append(instances[name])
+            instances[name] = -1 if simulated else px4_pool.take()
+            if not simulated:
+                taken.append(instances[name])
         cfg = write_px4_config(
             tmp_path / f"arena{len(stacks)}.toml",
             router_endpoint,
@@ -138,6 +142,7 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
             preset=preset,
             px4_params=px4_params,
             require_setup=require_setup,
+            simulated=simulated,
         )
         cm = px4_stack(cfg, tmp_path, keep_log=keep_log)
         stack = cm.__enter__()
@@ -145,7 +150,10 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
         arena = Arena(cfg, name="px4-tier")
         closers.append(arena.close)
         stacks.append((stack, arena))
-        print(f"\nPX4 SITL {instances} booted in " + ", ".join(f"{s:.2f} s" for s in stack.boot_s.values()))
+        if not simulated:
+            print(
+                f"\nPX4 SITL {instances} booted in " + ", ".join(f"{s:.2f} s" for s in stack.boot_s.values())
+            )
         print(f"logs: {tmp_path}")
         for name in vehicles:
             v = arena.vehicle(name)
@@ -160,7 +168,8 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
                 interval=0.2,
                 what=f"{name}: link" + (", vision fused and setup verified" if fused else ""),
             )
-            if fused:  # and PX4 itself ready to arm (its checks lag the arena's view by a second or two)
+            # and PX4 itself ready to arm (its checks lag the arena's view by a second or two)
+            if fused and not simulated:
 
                 def checks_pass(px4: Px4Sitl = stack.px4[name]) -> bool:
                     return is_true(px4.listener("vehicle_status"), "pre_flight_checks_pass")

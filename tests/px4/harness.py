@@ -83,12 +83,15 @@ def write_px4_config(
     require_setup: bool = True,
     services: Sequence[str] = ("sim", "mocap", "transform"),
     extra: str = "",
+    simulated: bool = False,
 ) -> ArenaConfig:
     """Write (and load) a config of PX4 SITL vehicles whose every port is private to this test.
 
     ``instances``: vehicle name → PX4 SITL instance; ``preset``: ``sim.px4_params`` ("arena" boots PX4
     set up for the arena, "px4" with its defaults); ``px4_params``: per-vehicle boot parameters;
-    ``require_setup`` false lets the gateways arm a PX4 whose parameters differ from the arena's.
+    ``require_setup`` false lets the gateways arm a PX4 whose parameters differ from the arena's;
+    ``simulated``: the same vehicles flown by the arena's simulated autopilot instead (its default
+    ``fidelity``, "px4"), for comparing the two.
     """
     cmd_port, data_port = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
     lines = [
@@ -112,10 +115,14 @@ def write_px4_config(
     ]
     for index, (name, n) in enumerate(instances.items()):
         north, east = (starts or {}).get(name, (index * 1.0 - 1.0, 0.0))
+        flown_by = (
+            [f'mavlink = "udpin:127.0.0.1:{free_port(socket.SOCK_DGRAM)}"', f"system_id = {index + 1}"]
+            if simulated
+            else ['autopilot = "px4-sitl"', f"px4_instance = {n}"]
+        )
         lines += [
             f"[vehicles.{name}]",
-            'autopilot = "px4-sitl"',
-            f"px4_instance = {n}",
+            *flown_by,
             f'rigid_body = "{name}"',
             f"sim = {{ start = [{north}, {east}] }}",
             f"require_setup = {str(require_setup).lower()}",
@@ -219,14 +226,20 @@ class Px4Stack:
         return p.proc.returncode
 
     def start_all(self) -> None:
-        """Every PX4 instance first (they boot in about a second), then the pipeline."""
-        for vehicle in self.cfg.vehicles:
-            self.start_px4(vehicle)
+        """Every PX4 instance first (they boot in about a second), then the pipeline.  Vehicles the
+        arena simulates (``autopilot = "sim"``) fly in one ``sim_vehicle`` process, with no truth bridge."""
+        specs = self.cfg.vehicles
+        for vehicle, spec in specs.items():
+            if spec.px4_sitl:
+                self.start_px4(vehicle)
+        if any(spec.simulated for spec in specs.values()):
+            self.start("sim_vehicle")
         for module in SHARED:
             self.start(module)
-        for vehicle in self.cfg.vehicles:
+        for vehicle, spec in specs.items():
             for module in PER_VEHICLE:
-                self.start(module, vehicle)
+                if module != "px4_truth" or spec.px4_sitl:
+                    self.start(module, vehicle)
 
     def dead(self) -> list[str]:
         """Processes that exited by themselves (a crash, not :meth:`stop`), with their status."""

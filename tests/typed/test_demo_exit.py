@@ -32,7 +32,7 @@ FLYING_S = 150.0  # the arena up, the vehicle ready and in the air, on a busy 2-
 # loaded: load average 5) and its session is open; it gives up by itself, saying why, after its own
 # --ready-timeout (90 s and 2 s a vehicle): the test's bound is the demo's, plus its error.
 READY_S = 90.0 + 2.0 + 15.0
-LANDED_S = 45.0  # the landing (at most --land-timeout, 10 s) and the arena's stop
+LANDED_S = 45.0  # the landing (at most --land-timeout, 20 s) and the arena's stop
 
 
 @pytest.fixture

@@ -1,0 +1,237 @@
+"""One program of every manoeuvre the client offers, and the figures it reads from the true pose.
+
+The parity tier (tests/px4/test_px4_parity.py) flies :func:`fly` on PX4 v1.16 SITL and on the arena's
+simulated autopilot (``fidelity = "px4"``), each through the whole arena, and compares the figures of
+:data:`FIGURES`.  Every figure is read from the vehicle's true pose (``arena/<d>/truth``: SIH's on PX4,
+the simulated world's otherwise) and the autopilot's state, the same way for both; times are the
+program's own (arena seconds, real time here).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from arena_common import Arena, Trajectory
+from arena_common.core import wire
+from tests.px4.harness import FlightRecord
+
+HEIGHT = 1.0  # m, the take-off height
+VELOCITY = 0.5  # m/s, the offboard velocity block's command, held for VELOCITY_S
+VELOCITY_S = 2.0
+STOPPED = 0.1  # m/s: below this (horizontal, true) the vehicle has stopped after a block
+STEP = 1.2  # m, the position stream's step west (larger than the hover's wander)
+CLIMB_THRUST = 0.05  # above hover thrust, level, for CLIMB_S: the attitude stream's block
+CLIMB_S = 1.0
+
+
+@dataclass(frozen=True)
+class Figure:
+    """One figure of the program: its words, unit, and the tolerance of the parity tier."""
+
+    name: str
+    words: str
+    unit: str
+    absolute: float = 0.0  # the tolerance is the larger of this (in ``unit``) and 25 % of PX4's figure
+
+
+#: The figures :func:`fly` returns, in the order of the program (and of docs/px4.md's table).
+FIGURES: tuple[Figure, ...] = (
+    Figure("takeoff_s", f"`takeoff({HEIGHT})` returns after", "s"),
+    Figure("hover_p50_cm", "hover (Hold) 8 s: distance from its median, p50", "cm", 5.0),
+    Figure("hover_max_cm", "hover (Hold) 8 s: distance from its median, max", "cm", 5.0),
+    Figure("goto_s", "`goto` 1 m north (the gateway's own): returns after", "s"),
+    Figure("goto_end_cm", "`goto`: mean position 1–3 s after, from the goal", "cm", 5.0),
+    Figure("traj_max_cm", "3-waypoint trajectory over 9 s: max deviation from the setpoint", "cm", 5.0),
+    Figure("traj_rms_cm", "3-waypoint trajectory: tracking rms", "cm", 5.0),
+    Figure("velocity_ms", f"offboard velocity {VELOCITY} m/s for {VELOCITY_S:.0f} s: speed reached", "m/s"),
+    Figure("exit_coast_cm", "leaving that block (Hold): coast", "cm", 5.0),
+    Figure("exit_stop_s", f"leaving that block: stopped (< {STOPPED} m/s) after", "s"),
+    Figure("step_half_s", f"position stream, a {STEP} m step: half-way after", "s"),
+    Figure("step_peak_ms", "position stream step: peak speed", "m/s"),
+    Figure(
+        "climb_cm",
+        f"attitude stream, level at hover + {CLIMB_THRUST} for {CLIMB_S:.0f} s: height gained",
+        "cm",
+        5.0,
+    ),
+    Figure("estimate_p50_cm", "estimate − truth in flight, horizontal p50", "cm", 5.0),
+    Figure("estimate_max_cm", "estimate − truth in flight, horizontal max", "cm", 5.0),
+    Figure("estimate_lag_ms", "estimate behind the truth (best-fitting shift)", "ms"),
+    Figure("touchdown_s", "`land()`: on the floor (true height < 5 cm) after", "s"),
+    Figure("land_s", "`land()` returns (landed, disarmed) after", "s"),
+)
+
+
+def _speed(p: wire.Pose) -> float:
+    return math.hypot(p.v[0], p.v[1]) if p.v is not None else math.nan
+
+
+def _track_p(record: FlightRecord, t0: int, t1: int | None = None) -> np.ndarray:
+    return np.array([p.p for p in record.track(t0, t1)])
+
+
+def _stop_after(record: FlightRecord, t0: int, within: float = 5.0) -> tuple[float, float]:
+    """(coast [m], seconds) from ``t0`` until the true horizontal speed stays below :data:`STOPPED`
+    for 0.3 s; waits up to ``within`` seconds for it."""
+    deadline = time.monotonic() + within
+    while True:
+        track = record.track(t0)
+        still = None
+        for i, p in enumerate(track):
+            run = [q for q in track[i:] if q.t <= p.t + 300_000_000]
+            if run[-1].t >= p.t + 290_000_000 and all(_speed(q) < STOPPED for q in run):
+                still = p
+                break
+        if still is not None or time.monotonic() > deadline:
+            break
+        time.sleep(0.2)
+    end = still or track[-1]
+    coast = math.dist(track[0].p[:2], end.p[:2])
+    return coast, (end.t - t0) / 1e9 if still else math.nan
+
+
+def fly(arena: Arena, name: str, record: FlightRecord) -> dict[str, float]:
+    """Fly the program on ``name`` (on the ground, vision fused) and return its figures by name."""
+    v = arena.vehicle(name)
+    out: dict[str, float] = {}
+    record.phase("takeoff")
+    v.arm()
+    out["takeoff_s"] = v.takeoff(HEIGHT, timeout=60)
+    time.sleep(3.0)  # settle
+
+    record.phase("hover")
+    t0 = wire.now_ns()
+    time.sleep(8.0)
+    hover = _track_p(record, t0)
+    dist = np.linalg.norm(hover - np.median(hover, axis=0), axis=1)
+    out["hover_p50_cm"], out["hover_max_cm"] = 100 * float(np.median(dist)), 100 * float(dist.max())
+
+    record.phase("goto")
+    here = v.position
+    assert here is not None
+    goal = (here[0] + 1.0, here[1], -HEIGHT)
+    t = time.monotonic()
+    v.goto(*goal, timeout=30)
+    out["goto_s"] = time.monotonic() - t
+    time.sleep(1.0)
+    t0 = wire.now_ns()
+    time.sleep(2.0)
+    mean = _track_p(record, t0).mean(axis=0)
+    out["goto_end_cm"] = 100 * math.dist(mean, goal)
+
+    record.phase("trajectory")
+    n, e = goal[0], goal[1]
+    trajectory = Trajectory.waypoints(
+        [
+            (0.0, (n, e, -HEIGHT)),
+            (3.0, (n - 0.8, e, -1.2)),
+            (6.0, (n - 0.8, e + 0.6, -1.2)),
+            (9.0, (n, e + 0.6, -HEIGHT)),
+        ],
+        yaw=0.0,
+    )
+    with v.offboard(rate=30) as ctl:
+        t0 = wire.now_ns()
+        ctl.follow(trajectory)
+        t1 = wire.now_ns()
+        time.sleep(2.0)
+    errors = [math.dist(p.p, trajectory.sample((p.t - t0) / 1e9).p) for p in record.track(t0, t1)]
+    out["traj_max_cm"] = 100 * max(errors)
+    out["traj_rms_cm"] = 100 * math.sqrt(float(np.mean(np.square(errors))))
+
+    record.phase("velocity")
+    with v.offboard() as ctl:
+        ctl.velocity(-VELOCITY, 0.0, 0.0, yaw=0.0)
+        t0 = wire.now_ns()
+        time.sleep(VELOCITY_S)
+        late = [_speed(p) for p in record.track(t0 + int((VELOCITY_S - 0.5) * 1e9))]
+    t_exit = wire.now_ns()
+    out["velocity_ms"] = float(np.median(late))
+    out["exit_coast_cm"], out["exit_stop_s"] = _stop_after(record, t_exit)
+    out["exit_coast_cm"] *= 100
+    time.sleep(2.0)
+
+    record.phase("step")
+    here = v.position
+    assert here is not None
+    start = record.latest_truth()
+    assert start is not None
+    target_e = here[1] - STEP
+    with v.offboard() as ctl:
+        ctl.position(here[0], target_e, -HEIGHT, yaw=0.0)
+        t0 = wire.now_ns()
+        time.sleep(5.0)
+    step = record.track(t0)
+    half = next((p.t for p in step if start.p[1] - p.p[1] >= STEP / 2), None)
+    out["step_half_s"] = (half - t0) / 1e9 if half is not None else math.nan
+    out["step_peak_ms"] = max(_speed(p) for p in step)
+    time.sleep(2.0)
+
+    record.phase("attitude")
+    hover_thrust = float(v.params.get("MPC_THR_HOVER"))
+    before = record.latest_truth()
+    assert before is not None
+    with v.offboard() as ctl:
+        ctl.attitude(0.0, 0.0, 0.0, hover_thrust + CLIMB_THRUST)
+        t0 = wire.now_ns()
+        time.sleep(CLIMB_S)
+        at_end = record.latest_truth()
+    assert at_end is not None
+    climb = [p for p in record.track(t0) if p.t <= t0 + int(CLIMB_S * 1e9)]
+    out["climb_cm"] = 100 * (-(climb[-1] if climb else at_end).p[2] + before.p[2])
+    time.sleep(3.0)
+
+    record.phase("land")
+    t, t0 = time.monotonic(), wire.now_ns()
+    v.land(timeout=90)
+    out["land_s"] = time.monotonic() - t
+    down = next((p.t for p in record.track(t0) if -p.p[2] < 0.05), None)
+    out["touchdown_s"] = (down - t0) / 1e9 if down is not None else math.nan
+    record.phase("ground")
+
+    estimate = [record.figure(phase) for phase in ("hover", "goto", "trajectory", "velocity", "step")]
+    out["estimate_p50_cm"] = 100 * float(np.median([f.horizontal_p50 for f in estimate]))
+    out["estimate_max_cm"] = 100 * max(f.horizontal_max for f in estimate)
+    out["estimate_lag_ms"] = 1000 * record.lag()[0]
+    return out
+
+
+def within(px4: float, sim: float, figure: Figure) -> bool:
+    """True when the simulation's figure is within 25 % of PX4's, or within the figure's absolute
+    tolerance, whichever is larger."""
+    return abs(sim - px4) <= max(0.25 * abs(px4), figure.absolute)
+
+
+def table(
+    px4: Sequence[Mapping[str, float]], sim: Sequence[Mapping[str, float]], unasserted: Mapping[str, str]
+) -> str:
+    """The side-by-side table (Markdown): each figure's median over the runs, and their range; the
+    figures of ``unasserted`` are marked, with why."""
+
+    def cell(runs: Sequence[Mapping[str, float]], f: Figure) -> str:
+        values = [r[f.name] for r in runs]
+        digits = 2 if f.unit in ("s", "m/s") else 0 if f.unit == "ms" else 1
+        mid = f"{float(np.median(values)):.{digits}f}"
+        if len(values) > 1:
+            mid += f" ({min(values):.{digits}f}–{max(values):.{digits}f})"
+        return mid
+
+    rows = [
+        f"| manoeuvre, figure | unit | PX4 SITL ({len(px4)} run{'s' * (len(px4) > 1)}) | simulated "
+        f"({len(sim)} run{'s' * (len(sim) > 1)}) | within |",
+        "|---|---|---|---|---|",
+    ]
+    for f in FIGURES:
+        a = float(np.median([r[f.name] for r in px4]))
+        b = float(np.median([r[f.name] for r in sim]))
+        tol = f"±{max(0.25 * abs(a), f.absolute):.2g}"
+        verdict = ("yes" if within(a, b, f) else "**no**") + f" ({tol})"
+        if f.name in unasserted:
+            verdict += f"; not asserted: {unasserted[f.name]}"
+        rows.append(f"| {f.words} | {f.unit} | {cell(px4, f)} | {cell(sim, f)} | {verdict} |")
+    return "\n".join(rows)
