@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test test-typed test-system test-px4 lint docs bench soak clean
+.PHONY: setup run test test-typed test-system test-px4 test-radio lint docs bench soak clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -47,6 +47,10 @@ test-typed: $(STAMP)
 # The real-PX4 tier: PX4 v1.16 SITL (PX4_SITL_DIR, else ../shared/px4-sitl) flown through the arena.
 test-px4: $(STAMP)
 	$(BIN)/python -m pytest -q -m px4 tests/px4
+
+# PX4 SITL over a slow radio link, with and without the arena's compensation (three flights, ~4 min).
+test-radio: $(STAMP)
+	ARENA_RADIO=1 $(BIN)/python -m pytest -q -s -m px4 tests/px4/test_px4_slow_link.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check arena_common services tests examples bench tools

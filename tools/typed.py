@@ -32,6 +32,7 @@ NOT_RUN_HERE: dict[str, str] = {
     "export ": "a ROS 2 user's shell settings, on a computer with ROS 2 (none can be installed here)",
     "ros2 ": "ROS 2's own tools (no ROS 2 here: tests/unit/ros2/ test the protocol they speak)",
     "rviz2": "ROS 2's 3D viewer (no ROS 2 here: tests/unit/ros2/ test the protocol it speaks)",
+    "make test-radio": "PX4 SITL over a slow radio link, three flights (~4 min): by hand, outside CI's 45 minutes",
     "make test": "CI runs every test target itself (.ci/run); make test-typed is this tier",
     "make lint": "CI runs it (.ci/run)",
     "make docs": "CI runs it (.ci/run)",

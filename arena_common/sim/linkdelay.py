@@ -5,10 +5,11 @@ then cannot take the gateway's clock (its TIMESYNC filter drops round trips of 1
 vision on arrival, so the link's delay is in every vision sample (docs/px4.md).  :class:`LinkDelay` stands
 between a simulated autopilot's ``udpout`` and its gateway's ``udpin``: the autopilot sends to
 :attr:`LinkDelay.port`, the relay sends on to the gateway from a socket of its own and back to whoever last
-sent it the vehicle's frames.  Each datagram waits ``delay ± jitter`` (uniform, each way, in wall-clock
-time whatever the simulation's speed, as a radio's would), and leaves in the order it came, as a radio
-link keeps order.  Both sockets are bound to the gateway's own address (loopback for a gateway on this
-computer), never to every interface.
+sent it the vehicle's frames (or to ``vehicle``, when given: a PX4 SITL's own port, poked first with
+:meth:`poke` so that PX4 takes the relay as its peer).  Each datagram waits ``delay ± jitter`` (uniform,
+each way, in wall-clock time whatever the simulation's speed, as a radio's would), and leaves in the order
+it came, as a radio link keeps order.  Both sockets are bound to the gateway's own address (loopback for
+a gateway on this computer), never to every interface.
 """
 
 from __future__ import annotations
@@ -28,7 +29,12 @@ class LinkDelay:
     """Holds each datagram between a simulated autopilot and its gateway ``delay_s ± jitter_s`` (each way)."""
 
     def __init__(
-        self, gateway: tuple[str, int], delay_s: float, jitter_s: float = 0.0, seed: int = 0
+        self,
+        gateway: tuple[str, int],
+        delay_s: float,
+        jitter_s: float = 0.0,
+        seed: int = 0,
+        vehicle: tuple[str, int] | None = None,
     ) -> None:
         if not 0.0 <= jitter_s <= delay_s <= 0.5:
             raise ValueError(f"link delay: need 0 <= jitter <= delay <= 0.5 s, got {delay_s} ± {jitter_s}")
@@ -42,7 +48,7 @@ class LinkDelay:
             s.bind((gateway[0], 0))
         self.port: int = self._vehicle_side.getsockname()[1]
         self.source: tuple[str, int] = self._gateway_side.getsockname()  # where the gateway sees frames from
-        self._vehicle: tuple[str, int] | None = None  # where the autopilot's frames come from
+        self._vehicle: tuple[str, int] | None = vehicle  # where the autopilot's frames come from
         self._heap: list[tuple[float, int, socket.socket, bytes, tuple[str, int]]] = []
         self._order = itertools.count()
         self._last_due = {id(self._vehicle_side): 0.0, id(self._gateway_side): 0.0}
@@ -88,6 +94,13 @@ class LinkDelay:
                     self._hold(self._vehicle_side, data, self._vehicle, now)
                 else:
                     self.dropped += 1
+
+    def poke(self, data: bytes) -> None:
+        """Send ``data`` to the vehicle now, from the relay's vehicle-side socket: an autopilot that answers
+        only the first peer that speaks to it (PX4) then takes the relay as its peer."""
+        if self._vehicle is None:
+            raise ValueError("link delay: no vehicle address to poke")
+        self._vehicle_side.sendto(data, self._vehicle)
 
     def close(self) -> None:
         """Stop relaying and close both sockets (what is still held is lost, as on a radio switched off)."""

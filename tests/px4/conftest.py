@@ -111,7 +111,9 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
     fused, setup verified and PX4's own pre-flight checks passed.  ``require_setup`` false lets the
     gateways arm a PX4 whose parameters differ from the arena's; ``keep_log`` keeps PX4's ULog
     (:meth:`Px4Stack.ulog`); ``simulated`` flies the same config's vehicles on the arena's simulated
-    autopilot instead, as the parity tier compares them.  Everything stops at the end of the test; logs
+    autopilot instead, as the parity tier compares them; ``links`` puts a slow link (delay, jitter: seconds
+    each way) between a vehicle's PX4 and its gateway (:class:`~arena_common.sim.linkdelay.LinkDelay`).
+    Everything stops at the end of the test; logs
     stay in ``tmp_path``.
     """
     taken: list[int] = []
@@ -127,6 +129,7 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
         fused: bool | None = None,
         keep_log: bool = False,
         simulated: bool = False,
+        links: Mapping[str, tuple[float, float]] | None = None,
     ) -> tuple[Px4Stack, Arena]:
         if fused is None:
             fused = preset == "arena"
@@ -144,7 +147,7 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
             require_setup=require_setup,
             simulated=simulated,
         )
-        cm = px4_stack(cfg, tmp_path, keep_log=keep_log)
+        cm = px4_stack(cfg, tmp_path, keep_log=keep_log, links=links)
         stack = cm.__enter__()
         closers.append(lambda: cm.__exit__(None, None, None))
         arena = Arena(cfg, name="px4-tier")

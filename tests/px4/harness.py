@@ -30,9 +30,11 @@ from arena_common import Arena
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.geometry.frames import quat_yaw, wrap_angle
+from arena_common.mavlink.link import mavlink2
 from arena_common.runtime.options import read_config
 from arena_common.runtime.process import child_setup
 from arena_common.runtime.px4_sitl import MAX_INSTANCE, Px4Sitl, Px4SitlError, instance_busy
+from arena_common.sim.linkdelay import LinkDelay
 from services.px4_sitl import boot_params
 from tests.conftest import REPO, free_port
 
@@ -153,6 +155,9 @@ class Px4Stack:
     procs: dict[str, _Proc] = field(default_factory=dict)
     boot_s: dict[str, float] = field(default_factory=dict)
     keep_log: bool = False  # PX4 writes its ULog (~1 MB/s): :meth:`ulog` after :meth:`stop_px4`
+    # A slow link (delay, jitter: s each way) between a vehicle's PX4 and its gateway: a relay, as a radio
+    links: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    relays: dict[str, LinkDelay] = field(default_factory=dict)
     _files: list[IO[str]] = field(default_factory=list)
 
     # -- PX4 ----------------------------------------------------------------------------------------------
@@ -173,7 +178,25 @@ class Px4Stack:
         self.px4[vehicle] = px4
         px4.start()
         self.boot_s[vehicle] = px4.wait_ready()
+        if vehicle in self.links:
+            self._relay(vehicle, px4)
         return self.boot_s[vehicle]
+
+    def _relay(self, vehicle: str, px4: Px4Sitl) -> None:
+        """Put the vehicle's slow link between its PX4 and its gateway, before the gateway starts: the
+        relay speaks to PX4 first, so PX4 (which answers only its first peer) sends everything through it."""
+        delay, jitter = self.links[vehicle]
+        relay = LinkDelay(
+            ("127.0.0.1", px4.ports.offboard),
+            delay,
+            jitter,
+            seed=px4.ports.instance,
+            vehicle=("127.0.0.1", px4.ports.px4_offboard),
+        )
+        self.relays[vehicle] = relay
+        mav = mavlink2.MAVLink(None, srcSystem=255, srcComponent=mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER)
+        beat = mav.heartbeat_encode(mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        relay.poke(beat.pack(mav))
 
     def stop_px4(self, vehicle: str) -> None:
         """Stop ``vehicle``'s PX4 and keep its working directory (its ULog) until :meth:`close`."""
@@ -266,14 +289,21 @@ class Px4Stack:
             self.stop(name)
         for px4 in self.px4.values():
             px4.stop()
+        for relay in self.relays.values():
+            relay.close()
         for f in self._files:
             f.close()
 
 
 @contextmanager
-def px4_stack(cfg: ArenaConfig, logs: Path, keep_log: bool = False) -> Iterator[Px4Stack]:
+def px4_stack(
+    cfg: ArenaConfig,
+    logs: Path,
+    keep_log: bool = False,
+    links: Mapping[str, tuple[float, float]] | None = None,
+) -> Iterator[Px4Stack]:
     """A started :class:`Px4Stack`; everything stopped at the end, whatever happened."""
-    stack = Px4Stack(cfg, logs, keep_log=keep_log)
+    stack = Px4Stack(cfg, logs, keep_log=keep_log, links=links or {})
     try:
         stack.start_all()
         yield stack

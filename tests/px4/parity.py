@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from arena_common import Arena, Trajectory
+from arena_common.client import Vehicle
 from arena_common.core import wire
 from tests.px4.harness import FlightRecord
 
@@ -95,23 +96,21 @@ def _stop_after(record: FlightRecord, t0: int, within: float = 5.0) -> tuple[flo
     return coast, (end.t - t0) / 1e9 if still else math.nan
 
 
-def fly(arena: Arena, name: str, record: FlightRecord) -> dict[str, float]:
-    """Fly the program on ``name`` (on the ground, vision fused) and return its figures by name."""
-    v = arena.vehicle(name)
-    out: dict[str, float] = {}
-    record.phase("takeoff")
+def _takeoff(v: Vehicle, record: FlightRecord, out: dict[str, float]) -> None:
     v.arm()
     out["takeoff_s"] = v.takeoff(HEIGHT, timeout=60)
     time.sleep(3.0)  # settle
 
-    record.phase("hover")
+
+def _hover(v: Vehicle, record: FlightRecord, out: dict[str, float]) -> None:
     t0 = wire.now_ns()
     time.sleep(8.0)
     hover = _track_p(record, t0)
     dist = np.linalg.norm(hover - np.median(hover, axis=0), axis=1)
     out["hover_p50_cm"], out["hover_max_cm"] = 100 * float(np.median(dist)), 100 * float(dist.max())
 
-    record.phase("goto")
+
+def _goto(v: Vehicle, record: FlightRecord, out: dict[str, float]) -> None:
     here = v.position
     assert here is not None
     goal = (here[0] + 1.0, here[1], -HEIGHT)
@@ -124,8 +123,11 @@ def fly(arena: Arena, name: str, record: FlightRecord) -> dict[str, float]:
     mean = _track_p(record, t0).mean(axis=0)
     out["goto_end_cm"] = 100 * math.dist(mean, goal)
 
-    record.phase("trajectory")
-    n, e = goal[0], goal[1]
+
+def _trajectory(v: Vehicle, record: FlightRecord, out: dict[str, float]) -> None:
+    here = v.position
+    assert here is not None
+    n, e = here[0], here[1]
     trajectory = Trajectory.waypoints(
         [
             (0.0, (n, e, -HEIGHT)),
@@ -144,7 +146,8 @@ def fly(arena: Arena, name: str, record: FlightRecord) -> dict[str, float]:
     out["traj_max_cm"] = 100 * max(errors)
     out["traj_rms_cm"] = 100 * math.sqrt(float(np.mean(np.square(errors))))
 
-    record.phase("velocity")
+
+def _velocity(v: Vehicle, record: FlightRecord, out: dict[str, float]) -> None:
     with v.offboard() as ctl:
         ctl.velocity(-VELOCITY, 0.0, 0.0, yaw=0.0)
         t0 = wire.now_ns()
@@ -152,18 +155,17 @@ def fly(arena: Arena, name: str, record: FlightRecord) -> dict[str, float]:
         late = [_speed(p) for p in record.track(t0 + int((VELOCITY_S - 0.5) * 1e9))]
     t_exit = wire.now_ns()
     out["velocity_ms"] = float(np.median(late))
-    out["exit_coast_cm"], out["exit_stop_s"] = _stop_after(record, t_exit)
-    out["exit_coast_cm"] *= 100
+    coast, out["exit_stop_s"] = _stop_after(record, t_exit)
+    out["exit_coast_cm"] = 100 * coast
     time.sleep(2.0)
 
-    record.phase("step")
+
+def _step(v: Vehicle, record: FlightRecord, out: dict[str, float]) -> None:
     here = v.position
-    assert here is not None
     start = record.latest_truth()
-    assert start is not None
-    target_e = here[1] - STEP
+    assert here is not None and start is not None
     with v.offboard() as ctl:
-        ctl.position(here[0], target_e, -HEIGHT, yaw=0.0)
+        ctl.position(here[0], here[1] - STEP, -HEIGHT, yaw=0.0)
         t0 = wire.now_ns()
         time.sleep(5.0)
     step = record.track(t0)
@@ -172,7 +174,8 @@ def fly(arena: Arena, name: str, record: FlightRecord) -> dict[str, float]:
     out["step_peak_ms"] = max(_speed(p) for p in step)
     time.sleep(2.0)
 
-    record.phase("attitude")
+
+def _attitude(v: Vehicle, record: FlightRecord, out: dict[str, float]) -> None:
     hover_thrust = float(v.params.get("MPC_THR_HOVER"))
     before = record.latest_truth()
     assert before is not None
@@ -186,15 +189,43 @@ def fly(arena: Arena, name: str, record: FlightRecord) -> dict[str, float]:
     out["climb_cm"] = 100 * (-(climb[-1] if climb else at_end).p[2] + before.p[2])
     time.sleep(3.0)
 
-    record.phase("land")
+
+def _land(v: Vehicle, record: FlightRecord, out: dict[str, float]) -> None:
     t, t0 = time.monotonic(), wire.now_ns()
     v.land(timeout=90)
     out["land_s"] = time.monotonic() - t
     down = next((p.t for p in record.track(t0) if -p.p[2] < 0.05), None)
     out["touchdown_s"] = (down - t0) / 1e9 if down is not None else math.nan
-    record.phase("ground")
 
-    estimate = [record.figure(phase) for phase in ("hover", "goto", "trajectory", "velocity", "step")]
+
+Manoeuvre = Callable[[Vehicle, FlightRecord, dict[str, float]], None]
+
+#: The program, in order: each manoeuvre is a phase of the flight record and adds its figures.
+MANOEUVRES: dict[str, Manoeuvre] = {
+    "takeoff": _takeoff,
+    "hover": _hover,
+    "goto": _goto,
+    "trajectory": _trajectory,
+    "velocity": _velocity,
+    "step": _step,
+    "attitude": _attitude,
+    "land": _land,
+}
+IN_FLIGHT = ("hover", "goto", "trajectory", "velocity", "step")  # the estimate is judged over these
+
+
+def fly(
+    arena: Arena, name: str, record: FlightRecord, manoeuvres: Sequence[str] = tuple(MANOEUVRES)
+) -> dict[str, float]:
+    """Fly ``manoeuvres`` (of :data:`MANOEUVRES`; takeoff first, land last) on ``name`` (on the ground,
+    vision fused) and return their figures by name, with the estimate's error over the flight."""
+    v = arena.vehicle(name)
+    out: dict[str, float] = {}
+    for manoeuvre in manoeuvres:
+        record.phase(manoeuvre)
+        MANOEUVRES[manoeuvre](v, record, out)
+    record.phase("ground")
+    estimate = [record.figure(phase) for phase in IN_FLIGHT if phase in manoeuvres]
     out["estimate_p50_cm"] = 100 * float(np.median([f.horizontal_p50 for f in estimate]))
     out["estimate_max_cm"] = 100 * max(f.horizontal_max for f in estimate)
     out["estimate_lag_ms"] = 1000 * record.lag()[0]

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from arena_common.cli._demo import LAND_TIMEOUT
 from tests.helpers import free_port, wait_for
 from tests.typed.harness import ARENA, Command, Typed, commands, kill_leftovers, leftovers
 
@@ -32,7 +33,7 @@ FLYING_S = 150.0  # the arena up, the vehicle ready and in the air, on a busy 2-
 # loaded: load average 5) and its session is open; it gives up by itself, saying why, after its own
 # --ready-timeout (90 s and 2 s a vehicle): the test's bound is the demo's, plus its error.
 READY_S = 90.0 + 2.0 + 15.0
-LANDED_S = 45.0  # the landing (at most --land-timeout, 20 s) and the arena's stop
+LANDED_S = LAND_TIMEOUT + 25.0  # the landing (at most --land-timeout) and the arena's stop
 
 
 @pytest.fixture
@@ -71,7 +72,7 @@ def test_a_stopped_demo_lands_every_vehicle_then_stops_the_arena(
     assert cmd.exits_within(LANDED_S) == 0, cmd.output()
     out = cmd.output()
     assert f"stopping ({sig.name}): every vehicle lands, then the arena stops" in out, out
-    assert re.search(r"landing x7: waiting up to 10 s", out), out
+    assert f"landing x7: waiting up to {LAND_TIMEOUT:.0f} s" in out, out
     assert _index(cmd, r"^landed: x7$") < _index(cmd, r"^stopping the arena$"), out
     assert "formation step 2/6" not in out.split(f"stopping ({sig.name})")[1]  # the flight was abandoned
     _nothing_left(tmp_path, cmd)

@@ -1,0 +1,97 @@
+"""PX4 SITL over a slow radio link: 30 ± 10 ms each way between PX4 and its gateway, with and without
+the arena's compensation, against the same flight on a direct link.
+
+A relay (:class:`~arena_common.sim.linkdelay.LinkDelay`, the radio) holds every datagram of the MAVLink
+link each way.  PX4 then drops every TIMESYNC round trip (10 ms or more) and stamps vision on arrival, so
+the link's delay is in every vision sample.  The gateway measures the link and its check wants
+``EKF2_EV_DELAY`` from it, as ``setup`` writes it (docs/px4.md, "The link's delay, as the arena shows it");
+PX4 takes the parameter after a reboot, which SITL denies, so PX4 boots with it for the compensated flight.
+Three flights of :func:`tests.px4.parity.fly` (takeoff, Hold, trajectory, land):
+
+- direct, PX4's TIMESYNC converged (it takes the gateway's stamps), as `arena px4 setup` leaves it;
+- slow link, ``EKF2_EV_DELAY`` set by ``setup`` from the measured link: PX4's estimate keeps up with the
+  truth as on the direct link;
+- slow link, ``EKF2_EV_DELAY`` left at 0: the estimate trails the truth by the link's delay more.
+
+Figures printed for all three (docs/px4.md gives them); asserted: the gateway sees the link's delay and
+PX4 stamping on arrival, the check wants a delay of the link's size, and the estimate's lag behind the truth
+is that of the direct flight (within 25 ms) when compensated and measurably longer (by 20 ms or more)
+when not.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+
+from arena_common.cli._px4 import request
+from tests.conftest import wait_for
+from tests.px4.conftest import PX4ArenaFactory
+from tests.px4.harness import FlightRecord, timesync_converged
+from tests.px4.parity import fly
+
+LINK = (0.030, 0.010)  # s each way: delay, jitter (a telemetry radio, a busy Wi-Fi)
+PROGRAM = ("takeoff", "hover", "trajectory", "land")
+FIGURES = [
+    "hover_p50_cm",
+    "traj_max_cm",
+    "traj_rms_cm",
+    "estimate_p50_cm",
+    "estimate_max_cm",
+    "estimate_lag_ms",
+]
+SAME_LAG_MS = 25.0  # compensated: the estimate's lag as on the direct link, within this
+WORSE_LAG_MS = 20.0  # uncompensated: longer by at least this (the one-way delay is 30 ms)
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.skipif(not os.environ.get("ARENA_RADIO"), reason="three PX4 flights (~4 min): make test-radio")
+def test_px4_over_a_slow_link_with_and_without_compensation(px4_arena: PX4ArenaFactory) -> None:
+    flights: dict[str, dict[str, float]] = {}
+
+    stack, arena = px4_arena(("d1",))
+    px4 = stack.px4["d1"]
+    wait_for(lambda: timesync_converged(px4), 150, 1.0, "PX4's TIMESYNC to converge")
+    flights["direct"] = fly(arena, "d1", FlightRecord(arena, "d1"), PROGRAM)
+    stack.close()
+
+    # Slow link, EKF2_EV_DELAY 0: the gateway measures the link and the check says what it needs.
+    stack, arena = px4_arena(("d1",), links={"d1": LINK})
+    d1 = arena.vehicle("d1")
+    # The gateway judges the link after 8 of its own round trips (1 Hz), all of them 40-80 ms here.
+    d1.wait_until(lambda v: v.state is not None and (v.state.rtt or 0.0) >= 0.04, 30.0, "the link's rtt")
+    assert d1.state is not None and d1.state.stamps == "arrival", d1.state
+
+    def wanted() -> float | None:
+        row = request(arena.bus, "d1", "check", 10.0).value["params"]["EKF2_EV_DELAY"]
+        return None if row["ok"] else float(row["want"])
+
+    want = wait_for(wanted, 30.0, 1.0, "the check to want EKF2_EV_DELAY from the measured link")
+    assert 25.0 <= want <= 60.0, want  # half a round trip of 40-80 ms, plus a pose's age
+    assert float(d1.params.get("EKF2_EV_DELAY")) == 0.0
+    flights["slow, EKF2_EV_DELAY 0"] = fly(arena, "d1", FlightRecord(arena, "d1"), PROGRAM)
+    assert not stack.dead(), stack.dead()
+    stack.close()
+
+    # Slow link, EKF2_EV_DELAY as `arena px4 setup` writes it.  PX4 applies it after a reboot, which SITL
+    # denies (PREFLIGHT_REBOOT_SHUTDOWN), so PX4 boots with it, as a real vehicle comes back from one.
+    stack, arena = px4_arena(("d1",), links={"d1": LINK}, px4_params={"d1": {"EKF2_EV_DELAY": want}})
+    d1 = arena.vehicle("d1")
+    d1.wait_until(lambda v: v.state is not None and (v.state.rtt or 0.0) >= 0.04, 30.0, "the link's rtt")
+    time.sleep(10.0)  # judged
+    row = request(arena.bus, "d1", "check", 10.0).value["params"]["EKF2_EV_DELAY"]
+    assert row["ok"] and float(row["have"]) == want, row
+    flights["slow, compensated"] = fly(arena, "d1", FlightRecord(arena, "d1"), PROGRAM)
+    relay = stack.relays["d1"]
+    print(f"\nEKF2_EV_DELAY {want:g} ms; relay forwarded {relay.forwarded}, dropped {relay.dropped}")
+    assert not stack.dead(), stack.dead()
+    stack.close()
+
+    print("\n| figure | " + " | ".join(flights) + " |")
+    for f in FIGURES:
+        print(f"| {f} | " + " | ".join(f"{flights[k][f]:.1f}" for k in flights) + " |")
+    direct, unfixed, fixed = (flights[k]["estimate_lag_ms"] for k in flights)
+    assert abs(fixed - direct) <= SAME_LAG_MS, flights
+    assert unfixed >= fixed + WORSE_LAG_MS, flights
