@@ -373,8 +373,10 @@ class FlightMixin(AutopilotState):
     def _brake(self, speed: float, tau: float) -> tuple[float, float]:
         """(distance, speed) ``tau`` seconds into PX4's Hold braking from ``speed``: a jerk-limited stop
         (MPC_JERK_AUTO, deceleration at most MPC_ACC_HOR), as PX4 v1.16 SITL was measured to stop (the
-        parity tier: 14–21 cm and 0.65–1.4 s from 0.35–0.38 m/s, against v·√(v/j) = 11–12 cm in
-        2√(v/j) = 0.6 s; the navigator's braking point v·(v/(2·a) + 0.6 s) lies beyond where it stops)."""
+        parity tier, four flights: 14–26 cm and 0.65–2.1 s from 0.35–0.38 m/s, the switch to Hold and the
+        hover's wander included; this stop is v·√(v/j) = 10–12 cm in 2√(v/j) = 0.6 s before the switch
+        and the estimate's lag; the navigator's braking point v·(v/(2·a) + 0.6 s) = 23–25 cm lies within
+        PX4's spread too: four flights do not tell the two apart)."""
         j = float(self.params.get("MPC_JERK_AUTO"))
         a = float(self.params.get("MPC_ACC_HOR"))
         t1 = min(math.sqrt(speed / j), a / j)  # deceleration ramps up (and later down) for t1
@@ -457,7 +459,7 @@ class FlightMixin(AutopilotState):
     def _land_speed(self) -> float:
         """Land's descent speed: MPC_LAND_SPEED above MPC_LAND_ALT2, MPC_LAND_CRWL below MPC_LAND_ALT3,
         graded in between, by the height above home.  PX4 v1.16 SITL crawls so without a distance sensor
-        (the parity tier: 3.6 s from 1.1 m to the floor, where MPC_LAND_SPEED alone would take ~1.7 s)."""
+        (the parity tier: 2.9–3.6 s from ~1.1 m to the floor, where MPC_LAND_SPEED alone takes ~1.7 s)."""
         fast, crawl = float(self.params.get("MPC_LAND_SPEED")), float(self.params.get("MPC_LAND_CRWL"))
         alt2, alt3 = float(self.params.get("MPC_LAND_ALT2")), float(self.params.get("MPC_LAND_ALT3"))
         height = self._home[2] - self.sim.estimator.out_position[2] if self._home_set else 0.0
