@@ -463,7 +463,7 @@ class FlightMixin(AutopilotState):
         fast, crawl = float(self.params.get("MPC_LAND_SPEED")), float(self.params.get("MPC_LAND_CRWL"))
         alt2, alt3 = float(self.params.get("MPC_LAND_ALT2")), float(self.params.get("MPC_LAND_ALT3"))
         height = self._home[2] - self.sim.estimator.out_position[2] if self._home_set else 0.0
-        if height >= alt2 or alt2 <= alt3:
+        if alt2 <= alt3:
             return fast if height >= alt2 else crawl
         return crawl + (fast - crawl) * min(1.0, max(0.0, (height - alt3) / (alt2 - alt3)))
 

@@ -113,8 +113,7 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
     (:meth:`Px4Stack.ulog`); ``simulated`` flies the same config's vehicles on the arena's simulated
     autopilot instead, as the parity tier compares them; ``links`` puts a slow link (delay, jitter: seconds
     each way) between a vehicle's PX4 and its gateway (:class:`~arena_common.sim.linkdelay.LinkDelay`).
-    Everything stops at the end of the test; logs
-    stay in ``tmp_path``.
+    Everything stops at the end of the test; logs stay in ``tmp_path``.
     """
     taken: list[int] = []
     stacks: list[tuple[Px4Stack, Arena]] = []

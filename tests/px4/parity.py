@@ -39,6 +39,10 @@ class Figure:
     unit: str
     absolute: float = 0.0  # the tolerance is the larger of this (in ``unit``) and 25 % of PX4's figure
 
+    def tolerance(self, px4: float) -> float:
+        """How far the simulation's figure may lie from PX4's ``px4``."""
+        return max(0.25 * abs(px4), self.absolute)
+
 
 #: The figures :func:`fly` returns, in the order of the program (and of docs/px4.md's table).
 FIGURES: tuple[Figure, ...] = (
@@ -78,16 +82,20 @@ def _track_p(record: FlightRecord, t0: int, t1: int | None = None) -> np.ndarray
 
 def _stop_after(record: FlightRecord, t0: int, within: float = 5.0) -> tuple[float, float]:
     """(coast [m], seconds) from ``t0`` until the true horizontal speed stays below :data:`STOPPED`
-    for 0.3 s; waits up to ``within`` seconds for it."""
+    for 0.3 s; waits up to ``within`` seconds for it (seconds NaN when it never did)."""
     deadline = time.monotonic() + within
     while True:
         track = record.track(t0)
-        still = None
-        for i, p in enumerate(track):
-            run = [q for q in track[i:] if q.t <= p.t + 300_000_000]
-            if run[-1].t >= p.t + 290_000_000 and all(_speed(q) < STOPPED for q in run):
+        still = None  # the first sample of the current run below STOPPED
+        for p in track:
+            if not _speed(p) < STOPPED:
+                still = None
+            elif still is None:
                 still = p
+            elif p.t - still.t >= 290_000_000:
                 break
+        else:
+            still = None  # the run (if any) has not lasted yet
         if still is not None or time.monotonic() > deadline:
             break
         time.sleep(0.2)
@@ -232,10 +240,28 @@ def fly(
     return out
 
 
+def median(runs: Sequence[Mapping[str, float]], figure: Figure) -> float:
+    """The figure's median over ``runs``."""
+    return float(np.median([r[figure.name] for r in runs]))
+
+
 def within(px4: float, sim: float, figure: Figure) -> bool:
-    """True when the simulation's figure is within 25 % of PX4's, or within the figure's absolute
-    tolerance, whichever is larger."""
-    return abs(sim - px4) <= max(0.25 * abs(px4), figure.absolute)
+    """True when the simulation's figure is within the figure's :meth:`Figure.tolerance` of PX4's (False
+    when either is NaN: a manoeuvre that never reached its mark)."""
+    return abs(sim - px4) <= figure.tolerance(px4)
+
+
+def apart(
+    px4: Sequence[Mapping[str, float]], sim: Sequence[Mapping[str, float]], unasserted: Mapping[str, str]
+) -> list[str]:
+    """The asserted figures (all but ``unasserted``) whose simulated median lies outside its tolerance of
+    PX4's, in words."""
+    out = []
+    for f in FIGURES:
+        real, simulated = median(px4, f), median(sim, f)
+        if f.name not in unasserted and not within(real, simulated, f):
+            out.append(f"{f.words}: PX4 {real:.3g} {f.unit}, simulated {simulated:.3g} {f.unit}")
+    return out
 
 
 def table(
@@ -247,7 +273,7 @@ def table(
     def cell(runs: Sequence[Mapping[str, float]], f: Figure) -> str:
         values = [r[f.name] for r in runs]
         digits = 2 if f.unit in ("s", "m/s") else 0 if f.unit == "ms" else 1
-        mid = f"{float(np.median(values)):.{digits}f}"
+        mid = f"{median(runs, f):.{digits}f}"
         if len(values) > 1:
             mid += f" ({min(values):.{digits}f}–{max(values):.{digits}f})"
         return mid
@@ -258,10 +284,8 @@ def table(
         "|---|---|---|---|---|",
     ]
     for f in FIGURES:
-        a = float(np.median([r[f.name] for r in px4]))
-        b = float(np.median([r[f.name] for r in sim]))
-        tol = f"±{max(0.25 * abs(a), f.absolute):.2g}"
-        verdict = ("yes" if within(a, b, f) else "**no**") + f" ({tol})"
+        real = median(px4, f)
+        verdict = ("yes" if within(real, median(sim, f), f) else "**no**") + f" (±{f.tolerance(real):.2g})"
         if f.name in unasserted:
             verdict += f"; not asserted: {unasserted[f.name]}"
         rows.append(f"| {f.words} | {f.unit} | {cell(px4, f)} | {cell(sim, f)} | {verdict} |")
