@@ -15,8 +15,8 @@ Three flights of :func:`tests.px4.parity.fly` (takeoff, Hold, trajectory, land):
 
 Figures printed for all three (docs/px4.md gives them); asserted: the gateway sees the link's delay and
 PX4 stamping on arrival, the check wants a delay of the link's size, and the estimate's lag behind the truth
-is that of the direct flight (within 25 ms) when compensated and measurably longer (by 20 ms or more)
-when not.
+stays near the direct flight's when compensated (at most 40 ms longer) and is measurably longer when not
+(by 25 ms or more than compensated); the bounds and the three runs they come from are at the constants.
 """
 
 from __future__ import annotations
@@ -44,8 +44,10 @@ FIGURES = [
     "estimate_lag_ms",
 ]
 DIRECT, UNCOMPENSATED, COMPENSATED = "direct", "slow, EKF2_EV_DELAY 0", "slow, compensated"
-SAME_LAG_MS = 25.0  # compensated: the estimate's lag as on the direct link, within this
-WORSE_LAG_MS = 20.0  # uncompensated: longer by at least this (the one-way delay is 30 ms)
+# The estimate's lag behind the truth over three runs of this test (direct, slow 0 ms, slow compensated):
+# 110/180/130, 100/170/130, 140/190/140 ms.  PX4's own lag on a direct link varies by 40 ms run to run.
+NEAR_LAG_MS = 40.0  # compensated: at most this much longer than on the direct link (measured 0-30)
+WORSE_LAG_MS = 25.0  # uncompensated: at least this much longer than compensated (measured 40-50)
 
 
 def judged(arena: Arena) -> dict[str, Any]:
@@ -97,5 +99,5 @@ def test_px4_over_a_slow_link_with_and_without_compensation(px4_arena: PX4ArenaF
     for f in FIGURES:
         print(f"| {f} | " + " | ".join(f"{flights[k][f]:.1f}" for k in flights) + " |")
     lag = {name: figures["estimate_lag_ms"] for name, figures in flights.items()}
-    assert abs(lag[COMPENSATED] - lag[DIRECT]) <= SAME_LAG_MS, flights
+    assert lag[COMPENSATED] - lag[DIRECT] <= NEAR_LAG_MS, flights
     assert lag[UNCOMPENSATED] >= lag[COMPENSATED] + WORSE_LAG_MS, flights
