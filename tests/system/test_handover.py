@@ -5,13 +5,15 @@ Simulated vehicles flying as PX4 does (the ``px4`` fidelity: they wander), real 
 program's setpoints reach the bus 50–300 ms late, each by its own random delay (tests/handoverlib.py).
 ROS 2 Twist bursts and their silences take turns with the program's hand-overs (the ``ros2`` service on
 the same bus, fed as an rmw_zenoh node feeds it).  After each hand-over returns, the 3 s that follow must
-show no failsafe and no mode change nobody asked for; the whole flight must show no failsafe landing.
+show no failsafe and no mode change nobody asked for; the whole flight must show no failsafe landing, and
+no two vehicles in the air nearer each other than ``arena.min_separation`` (their true poses, every 50 ms).
 docs/safety.md §2.1 gives the rules; the program's flows, fewer, fly PX4 SITL in
 tests/px4/test_px4_handover.py.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 from collections.abc import Callable, Iterator
@@ -81,14 +83,30 @@ def test_hand_overs_with_setpoints_delayed_and_reordered(rig: Rig, twists: Twist
         except BaseException as exc:  # reported below, with the vehicle
             errors.append(exc)
 
+    closest = [math.inf]  # the nearest two vehicles came to each other in the air, by their true poses
+    done = threading.Event()
+
+    def watch_separation() -> None:
+        aps = list(rig.aps.values())
+        while not done.wait(0.05):
+            airborne = [ap.true_pose().position for ap in aps if not ap.sim.landed]
+            for i, a in enumerate(airborne):
+                for b in airborne[i + 1 :]:
+                    closest[0] = min(closest[0], math.dist(a, b))
+
+    watcher = threading.Thread(target=watch_separation, daemon=True)
+    watcher.start()
     try:
         threads = [threading.Thread(target=fly, args=(n,), daemon=True) for n in rig.cfg.vehicles]
         for t in threads:
             t.start()
         for t in threads:
             t.join(HANDOVERS * 10.0)
+        done.set()
+        watcher.join(2.0)
         assert not errors, errors
         assert judge.problems == [], judge.problems
+        assert closest[0] >= rig.cfg.arena.min_separation, closest  # no two vehicles nearer than allowed
         assert judge.total >= HANDOVERS and set(judge.count) == {k for k, _, _ in flows}, judge.count
         # The whole flight: no failsafe, no landing but the one asked for; the bus did delay.
         for name in rig.cfg.vehicles:
@@ -103,8 +121,9 @@ def test_hand_overs_with_setpoints_delayed_and_reordered(rig: Rig, twists: Twist
         assert bursts == judge.count["ROS 2 Twist burst, then silence"], bursts  # each engaged once
         print(
             f"\nhand-overs: {judge.count}; setpoints delayed: {sum(p.delayed for p in delayed)}; "
-            f"dropped: {dropped}; Twist streams: {bursts}"
+            f"dropped: {dropped}; Twist streams: {bursts}; closest two vehicles came: {closest[0]:.2f} m"
         )
     finally:
+        done.set()
         program.close()
         other.close()
