@@ -26,6 +26,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from arena_common.bus import sequence
 from arena_common.core import keys, wire
 from arena_common.core.ops import OPS
 from tools.vectors import Vector, WireDocError, vectors
@@ -515,7 +516,21 @@ def _keys_section() -> list[str]:
     out += ["", "### QoS classes", "", "| QoS | Zenoh | meaning |", "|---|---|---|"]
     for qos, (how, meaning) in _QOS.items():
         out.append(f"| {qos} | {how} | {meaning} |")
-    out.append("")
+    out += [
+        "",
+        "### Sequence numbers",
+        "",
+        "Every sample an arena publisher sends carries a Zenoh attachment of "
+        f"{sequence.STAMP.size} bytes: the publisher's id (a random u64, new each time a publisher is "
+        "declared) and the sample's number within that publisher, from 1 (u64), both little-endian "
+        f"(`struct` format `{sequence.STAMP.format}`). A subscriber that keeps the last number seen per "
+        "key and publisher id counts what the bus lost: a jump from n to n + k lost k − 1 samples. The first "
+        "sample of an id starts its count (a late subscriber, a restarted publisher); a number at or below "
+        "the last one is late, not a loss undone. Every arena service publishes what it counted this way in "
+        "`Stats.lost`, per key. A sample without this attachment (a one-off put, a replay, another program) "
+        "is unnumbered.",
+        "",
+    ]
     return out
 
 

@@ -22,6 +22,7 @@ from typing import Any, Generic, TypeVar
 
 import zenoh
 
+from arena_common.bus.sequence import STAMP, GapCounter, new_publisher_id
 from arena_common.core import wire
 from arena_common.core.config import ZenohSpec
 from arena_common.core.errors import BusError, PayloadError
@@ -248,7 +249,11 @@ class Handler(Channel[Received[Any]]):
 
 
 class Subscription:
-    """A subscriber whose samples wait in a :class:`Channel` for your thread.  Iterate or call ``get``."""
+    """A subscriber whose samples wait in a :class:`Channel` for your thread.  Iterate or call ``get``.
+
+    Its :attr:`gaps` count, per key, the samples its publishers numbered that never arrived
+    (:mod:`~arena_common.bus.sequence`).
+    """
 
     def __init__(
         self,
@@ -263,11 +268,15 @@ class Subscription:
         self._dropped_seen = 0
         self._decode = decode
         self._keep_raw = keep_raw
+        self._bus = bus
+        self.gaps = GapCounter()
         self._sub = bus.session.declare_subscriber(keyexpr, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Runs on a Zenoh thread: decode (cheap, bounded) and hand over; never block here.
         key = str(sample.key_expr)
+        att = sample.attachment
+        self.gaps.observe(key, None if att is None else att.to_bytes())
         raw = sample.payload.to_bytes()
         enc = str(sample.encoding)
         item: Received[Any] = Received(key, None, time.time_ns(), None, raw if self._keep_raw else b"", enc)
@@ -303,6 +312,7 @@ class Subscription:
         except Exception:  # already gone with its session
             pass
         self.channel.close()
+        self._bus._retire(self)
 
 
 class Lane(enum.Enum):
@@ -322,12 +332,14 @@ class Lane(enum.Enum):
 
 
 class Publisher(Generic[P]):
-    """Typed publisher on one key: sets the schema encoding, counts what it sent."""
+    """Typed publisher on one key: sets the schema encoding, counts what it sent and numbers it (its id
+    and the sample's number in the attachment, :mod:`~arena_common.bus.sequence`)."""
 
     def __init__(self, bus: Bus, key: str, ptype: type[P], realtime: bool, lane: Lane = Lane.DATA) -> None:
         self.key = key
         self.ptype = ptype
         self.sent = 0
+        self.id = new_publisher_id()
         self._matching: bool | None = None  # None until first asked (see :attr:`matching`)
         self._listener: Any = None
         self._enc = zenoh.Encoding(ptype.encoding())
@@ -341,8 +353,8 @@ class Publisher(Generic[P]):
 
     def put(self, payload: P) -> None:
         """Encode and publish one payload."""
-        self._pub.put(payload.encode())
         self.sent += 1
+        self._pub.put(payload.encode(), attachment=STAMP.pack(self.id, self.sent))
 
     @property
     def matching(self) -> bool:
@@ -367,9 +379,9 @@ class Publisher(Generic[P]):
         self._matching = bool(status.matching)
 
     def put_raw(self, data: bytes) -> None:
-        """Publish bytes as they are (replay, tests of bad input)."""
-        self._pub.put(data)
+        """Publish bytes as they are (replay, tests of bad input), numbered as every sample."""
         self.sent += 1
+        self._pub.put(data, attachment=STAMP.pack(self.id, self.sent))
 
     def close(self) -> None:
         try:
@@ -388,6 +400,8 @@ class Bus:
         self.session = session
         self.opened = time.monotonic()
         self._closables: list[Any] = []
+        self._subscriptions: list[Subscription] = []
+        self._retired_lost: dict[str, int] = {}
         self._lock = threading.Lock()
 
     # -- publishing -------------------------------------------------------------------------------
@@ -427,7 +441,29 @@ class Bus:
         handle each sample on the Zenoh thread.
         """
         ch: Channel[Received[Any]] = channel if channel is not None else Channel(capacity, ring)
-        return self._keep(Subscription(self, keyexpr, wire.decode_any if typed else None, ch, keep_raw))
+        sub = Subscription(self, keyexpr, wire.decode_any if typed else None, ch, keep_raw)
+        with self._lock:
+            self._subscriptions.append(sub)
+        return self._keep(sub)
+
+    def lost(self) -> dict[str, int]:
+        """Samples lost on the bus so far, per key, as this session's subscriptions counted them (gaps in
+        their publishers' numbers; a key two subscriptions take counts once, the larger)."""
+        with self._lock:
+            subs = list(self._subscriptions)
+            out = dict(self._retired_lost)
+        for sub in subs:
+            for key, n in sub.gaps.lost().items():
+                out[key] = max(out.get(key, 0), n)
+        return out
+
+    def _retire(self, sub: Subscription) -> None:
+        # A closed subscription's losses stay counted; the subscription itself is let go.
+        with self._lock:
+            if sub in self._subscriptions:
+                self._subscriptions.remove(sub)
+                for key, n in sub.gaps.lost().items():
+                    self._retired_lost[key] = max(self._retired_lost.get(key, 0), n)
 
     # -- request / response -------------------------------------------------------------------------
     def serve(

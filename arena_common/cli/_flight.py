@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 from collections import defaultdict
+from collections.abc import Iterable
 from typing import Annotated, Any
 
 import typer
@@ -70,13 +71,13 @@ class Snapshot:
         """The services, vehicles and clocks tables (vehicles first: what a terminal too short still shows)."""
         alive = self.bus.alive(keys.ALIVE_ALL, 0.5)
         services = Table(title="services", title_justify="left")
-        for col in ("host", "service", "in/s", "out/s", "rej", "cpu %", "MB", "up s"):
+        for col in ("host", "service", "in/s", "out/s", "rej", "lost", "cpu %", "MB", "up s"):
             services.add_column(col, justify="right" if col not in ("host", "service") else "left")
         for key in alive:
             host, service = key.split("/")[-2:]
             st = self.stats.get(f"{host}/{service}")
             if st is None:
-                services.add_row(host, service, "", "", "", "", "", "")
+                services.add_row(host, service, "", "", "", "", "", "", "")
                 continue
             rej = sum(int(v) for v in st.rejected.values())
             services.add_row(
@@ -85,6 +86,7 @@ class Snapshot:
                 f"{st.rates.get('in', 0):.0f}",
                 f"{st.rates.get('out', 0):.0f}",
                 f"[red]{rej}[/]" if rej else "0",
+                _lost(sum(int(v) for v in st.lost.values())),
                 f"{st.cpu:.1f}",
                 f"{st.rss / 1e6:.0f}",
                 f"{st.up:.0f}",
@@ -102,9 +104,11 @@ class Snapshot:
             "vision",
             "link rtt ms",
             "stamps",
+            "lost",
             "failsafes",
         ):
             vehicles.add_column(col)
+        lost = lost_by_vehicle(self.stats.values())
         for name in sorted(self.states):
             s = self.states[name]
             age = time.monotonic() - self.state_time[name]
@@ -126,6 +130,7 @@ class Snapshot:
                 vision,
                 _rtt(s),
                 s.stamps if s.stamps != "arrival" else "[yellow]arrival[/]",
+                _lost(lost.get(name, 0)),
                 ", ".join(s.fs),
             )
         grid = Table.grid()
@@ -133,6 +138,30 @@ class Snapshot:
             grid.add_row(table)
         grid.add_row(clock_table(self.clocks))
         return grid
+
+
+def _lost(n: int) -> str:
+    return f"[red]{n}[/]" if n else "0"
+
+
+def lost_by_key(stats: Iterable[wire.Stats]) -> dict[str, int]:
+    """Samples the arena's services counted lost on the bus, per key (a key two services take: the larger
+    count, as both miss what the bus shed before it reached them)."""
+    out: dict[str, int] = {}
+    for st in stats:
+        for key, n in st.lost.items():
+            out[key] = max(out.get(key, 0), int(n))
+    return out
+
+
+def lost_by_vehicle(stats: Iterable[wire.Stats]) -> dict[str, int]:
+    """Samples lost on the bus per vehicle: on its own keys (``arena/<vehicle>/…``)."""
+    out: dict[str, int] = defaultdict(int)
+    for key, n in lost_by_key(stats).items():
+        parts = key.split("/")
+        if len(parts) > 2 and parts[0] == "arena" and parts[1] != "sys":
+            out[parts[1]] += n
+    return dict(out)
 
 
 def clock_table(clocks: dict[str, wire.ClockOffset]) -> Table:
@@ -192,18 +221,21 @@ def top(
     keyexpr: Annotated[str, typer.Argument(help="Keys to watch.")] = "arena/**",
     duration: Annotated[float, typer.Option("--duration", help="Stop after S seconds (0: Ctrl-C).")] = 0.0,
 ) -> None:
-    """Rates and latencies (receive time minus measurement time) per key, live."""
+    """Rates, latencies (receive time minus measurement time) and losses per key, live: what this viewer
+    missed on the bus (gaps in the publishers' numbers) and what the arena's services counted missed."""
     with _arena() as arena:
         sub = arena.bus.subscribe(keyexpr, capacity=100_000, ring=False)
         counts: dict[str, int] = defaultdict(int)
         lats: dict[str, list[float]] = defaultdict(list)
         clocks: dict[str, wire.ClockOffset] = {}
+        stats: dict[str, wire.Stats] = {}
         end = time.monotonic() + duration if duration > 0 else math.inf
 
         def table(dt: float) -> Table:
             t = Table(title=f"{keyexpr} — last {dt:.1f} s")
-            for col in ("key", "Hz", "lat p50 ms", "lat p99 ms", "lat max ms"):
+            for col in ("key", "Hz", "lat p50 ms", "lat p99 ms", "lat max ms", "lost here", "lost (arena)"):
                 t.add_column(col, justify="left" if col == "key" else "right")
+            arena_lost = lost_by_key(stats.values())
             for k in sorted(counts):
                 ls = sorted(lats[k])
                 fig = (
@@ -211,7 +243,14 @@ def top(
                     if ls
                     else ["", "", ""]
                 )
-                t.add_row(k, f"{counts[k] / dt:.1f}", *fig)
+                here = sub.gaps.keys.get(k)
+                t.add_row(
+                    k,
+                    f"{counts[k] / dt:.1f}",
+                    *fig,
+                    _lost(here.lost if here else 0),
+                    _lost(arena_lost.get(k, 0)),
+                )
             if not clocks:
                 return t
             grid = Table.grid()
@@ -228,6 +267,8 @@ def top(
                         counts[item.key] += 1
                         if isinstance(item.payload, wire.ClockOffset):
                             clocks[f"{item.payload.host}/{item.payload.service}"] = item.payload
+                        elif isinstance(item.payload, wire.Stats):
+                            stats[f"{item.payload.host}/{item.payload.service}"] = item.payload
                         t = getattr(item.payload, "t", 0)
                         if t:
                             lats[item.key].append((item.t_recv - t) / 1e9)

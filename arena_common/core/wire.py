@@ -457,6 +457,9 @@ class Stats(Payload, frozen=True):
     cpu: Annotated[float, _float("CPU use over the last interval, percent of one core")] = _always(0.0)
     rss: Annotated[int, _int("Resident memory", unit="byte")] = _always(0)
     vehicle: Annotated[Str, _doc("Vehicle served, if any")] = _always("")
+    lost: Annotated[
+        Map, _doc("Samples lost on the bus since start, by key: gaps in their publishers' numbers")
+    ] = _always({})
 
 
 _CLOCK_STATES = ("reference", "ok", "uncertain", "unknown", "no_reference")

@@ -177,6 +177,7 @@ class Service:
             cpu=cpu,
             rss=_rss_bytes(),
             vehicle=self.vehicle,
+            lost=self.bus.lost(),
         )
         self._stats_pub.put(msg)
         return msg

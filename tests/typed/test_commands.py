@@ -96,7 +96,7 @@ def test_reading_commands(arena: Arena, where: str) -> None:
     lines = arena.run("echo", "arena/x7/pose", "-n", "3", where=where).strip().splitlines()
     assert len(lines) == 3 and all("arena/x7/pose" in line for line in lines), lines
     top = arena.run("top", "arena/x7/**", "--duration", "2", where=where)
-    assert "arena/x7/pose" in top and "arena/x7/vision" in top, top
+    assert "arena/x7/pose" in top and "arena/x7/vision" in top and "lost" in top, top
 
 
 @pytest.mark.covers(
