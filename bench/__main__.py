@@ -78,6 +78,14 @@ Fleet = Annotated[
         "--vehicles is given, 0: skip).",
     ),
 ]
+Growth = Annotated[
+    str | None,
+    typer.Option(
+        "--growth",
+        help="Vehicle counts of the 'How cost grows' table, each deployed as the fleet is (default "
+        "1,10,20,50 unless --vehicles is given; 0: skip).",
+    ),
+]
 Out = Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")]
 Docs = Annotated[
     bool | None,
@@ -119,14 +127,16 @@ def bench(
     decimate: Decimate = None,
     vehicle_mode: VehicleMode = "",
     fleet: Fleet = None,
+    growth: Growth = None,
     out: Out = Path("bench-results"),
     docs: Docs = None,
     docs_file: DocsFile = Path("docs/performance.md"),
     rerender: Rerender = None,
 ) -> None:
     """Measure the arena: end-to-end latency, loss, vision rate, CPU and memory at 1 and 20 vehicles × 180 Hz
-    (as deployed and overloaded too) and a fleet of 50 as deployed, beside a bare Zenoh and a UDP chain of
-    the same processes, the gateway beside its floors and MAVProxy, and per-stage costs."""
+    (as deployed and overloaded too), a fleet of 50 as deployed and how the cost grows from 1 to 50, beside
+    a bare Zenoh and a UDP chain of the same processes, the gateway beside its floors and MAVProxy, and
+    per-stage costs."""
     from bench import run as bench_mod
 
     if rerender is not None:
@@ -154,6 +164,10 @@ def bench(
         changes["fleet"] = fleet
     elif vehicles is not None:  # `-n 1` asks for one vehicle: the fleet of 50 only when asked for too
         changes["fleet"] = 0
+    if growth is not None:
+        changes["growth"] = tuple(n for n in _numbers(growth, "--growth", int) if n)
+    elif vehicles is not None:  # likewise the growth table
+        changes["growth"] = ()
     given = {
         "duration": duration,
         "warmup": warmup,

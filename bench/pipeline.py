@@ -113,6 +113,7 @@ class PointResult:
     # the least, the median and the most over the vehicles.
     vision_rate: dict[str, float] = field(default_factory=dict)
     hogs: int = 0  # CPU hogs run beside the chain during the window (the overload point)
+    vehicle_mode: str = ""  # the config's zenoh.vehicle_mode the point ran with ("": its default)
     # s from the first process started to every service alive ("services"), and from the emulator's start
     # to ODOMETRY from every gateway ("vision"); the first point of a process set only
     startup: dict[str, float] = field(default_factory=dict)
@@ -484,6 +485,7 @@ class _ArenaRun:
             hops=hop_breakdown(found["first_vehicle"], self.hop_watcher.stamps) if self.hop_watcher else {},
             window_s=(t1 - t0) / 1e9,
             hogs=hogs,
+            vehicle_mode=self.settings.vehicle_mode,
             startup=dict(self.startup) if not self.results else {},
         )
         keys_ = ("frames", "frame_gaps", "substituted", "unmatched_time", "clock_residual_us_p99")

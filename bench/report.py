@@ -4,6 +4,7 @@ generated part of docs/performance.md."""
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -171,6 +172,63 @@ def resource_rows(points: Sequence[PointResult]) -> list[list[str]]:
                 cell("emulator"),
                 cell("load"),
                 _f(rss, 0),
+            ]
+        )
+    return rows
+
+
+GROWTH_HEADER = [
+    "vehicles",
+    "arena CPU %",
+    "CPU % per vehicle",
+    "vehicle services % per vehicle",
+    "RSS MB per vehicle",
+    "idle % per vehicle",
+    "p50 ms",
+    "p99 ms",
+    "poses/s per vehicle: least (median)",
+    "lost/expected",
+]
+
+
+_GROWTH_CHAIN = re.compile(re.escape(CHAINS["transform"]) + r"-v([\d.]+)")
+
+
+def growth_point(points: Sequence[PointResult], n: int, vision: float) -> PointResult | None:
+    """The point of the growth table for ``n`` vehicles: vision as deployed, the transform decimating,
+    the vehicles' processes as the fleet runs them (an explicit ``vehicle_mode``), no hogs beside it."""
+    chain = f"{CHAINS['transform']}-v{vision:g}"
+    for p in points:
+        if p.chain == chain and p.vehicles == n and not p.hogs and p.vehicle_mode:
+            return p
+    return None
+
+
+def growth_rows(points: Sequence[PointResult]) -> list[list[str]]:
+    """How the cost grows with the fleet: per vehicle count, the arena's CPU (router, ingest, transform,
+    gateways) in all and per vehicle, the vehicle services' own share, their memory, idle CPU, latency and
+    vision.  Flat columns mean a bigger computer buys proportionally more vehicles."""
+    rows: list[list[str]] = []
+    deployed = sorted({(p.vehicles, float(m[1])) for p in points if (m := _GROWTH_CHAIN.fullmatch(p.chain))})
+    for n, vision in deployed:
+        p = growth_point(points, n, vision)
+        if p is None:
+            continue
+        s = resource_summary(p)
+        vehicle_rss = [info["rss"] / MB for info in p.per_service.values() if info["role"] in VEHICLE_ROLES]
+        idle = [v for name, v in s["idle_cpu"].items() if p.idle[name]["role"] in VEHICLE_ROLES]
+        rows.append(
+            [
+                str(n),
+                f"{s['pipeline_cpu']:.1f}",
+                f"{s['pipeline_cpu_per_vehicle']:.2f}",
+                f"{s['per_vehicle_cpu']:.2f}",
+                _f(sum(vehicle_rss) / len(vehicle_rss), 1) if vehicle_rss else "—",
+                f"{sum(idle) / len(idle):.2f}" if idle else "—",
+                _f(p.latency["p50"]),
+                _f(p.latency["p99"]),
+                _vision_cell(p),
+                f"{p.lost}/{p.expected}",
             ]
         )
     return rows
@@ -376,6 +434,15 @@ def markdown_report(result: dict[str, Any]) -> str:
             "",
             _markdown(RESOURCE_HEADER, resource_rows(points)),
         ]
+        if growth_rows(points):
+            parts += [
+                "",
+                "**How cost grows** (vision 50 Hz as deployed, the transform decimating, each vehicle's "
+                "processes as `arena demo --vehicles N` runs them; % of one core over the window; RSS and "
+                "idle CPU: the vehicle services', mean per vehicle)",
+                "",
+                _markdown(GROWTH_HEADER, growth_rows(points)),
+            ]
         if hop_rows(points):
             parts += [
                 "",

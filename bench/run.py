@@ -44,6 +44,7 @@ from bench.floor_run import run_floor
 from bench.harness import BenchError, ProcessSet
 from bench.pipeline import CHAINS, PointResult, RunSettings, run_arena
 from bench.report import (
+    GROWTH_HEADER,
     HOPS_HEADER,
     LATENCY_HEADER,
     PEER_HEADER,
@@ -53,6 +54,8 @@ from bench.report import (
     _f,
     _rich,
     evaluate_targets,
+    growth_point,
+    growth_rows,
     hop_rows,
     latency_rows,
     markdown_report,
@@ -108,6 +111,9 @@ class BenchOptions:
     fleet: int = 50  # vehicles of the fleet point: deployed vision only, every configuration, per-vehicle
     # processes as clients of the router unless vehicle_mode says otherwise (0: skip)
     fleet_settle: float = 5.0  # s after the fleet's services came up before its idle window
+    # Vehicle counts of the growth table: each deployed as the fleet is (the fleet's own point reused), so
+    # that the cost per vehicle reads across fleet sizes (() or 0: skip)
+    growth: tuple[int, ...] = (1, 10, 20, 50)
     quick: bool = False
 
     @classmethod
@@ -124,6 +130,7 @@ class BenchOptions:
             peer_sweep=(1000.0,),
             micro_scale=0.2,
             fleet=0,
+            growth=(),
             quick=True,
         )
         return replace(base, **changes)
@@ -146,6 +153,8 @@ class BenchOptions:
             raise BenchError("peer rate, peer duration and micro scale must be positive")
         if self.peer_repeats < 1 or self.overload < 0:
             raise BenchError("peer repeats must be at least 1, overload hogs not negative")
+        if any(not 1 <= n <= 200 for n in self.growth):
+            raise BenchError(f"growth vehicle counts must be within 1..200, got {self.growth}")
         if self.fleet and not 1 <= self.fleet <= 200:
             raise BenchError(f"the fleet must be within 1..200 vehicles, got {self.fleet}")
         if self.vehicle_mode not in ("", "client", "same"):
@@ -310,6 +319,8 @@ def run(options: BenchOptions, console: Console | None = None) -> dict[str, Any]
                     f"[bold]fleet[/bold], {options.fleet} vehicles, vision {options.realistic_vision:g} Hz"
                 )
                 _run_fleet(options, settings, on_point, timings)
+            if "pipeline" in options.parts and options.growth and options.realistic_vision is not None:
+                _run_growth(options, settings, on_point, timings, points)
             result["points"] = [_clean(p.as_dict()) for p in points]
             _print_points(console, points)
         if "peer" in options.parts:
@@ -445,12 +456,7 @@ def _run_fleet(
     """The fleet point: ``options.fleet`` vehicles as deployed, in every configuration (transform first)."""
     assert options.realistic_vision is not None
     n = options.fleet
-    fleet_settings = replace(
-        settings,
-        settle=options.fleet_settle,
-        idle=max(settings.idle, 2.0),
-        vehicle_mode=options.vehicle_mode or "client",  # as `arena demo --vehicles N` flies
-    )
+    fleet_settings = _fleet_settings(options, settings)
     for decimate in reversed(options.decimate):  # transform first: it keeps up best
         with _timed(timings, f"fleet {n} {decimate}"):
             run_arena(
@@ -465,9 +471,47 @@ def _run_fleet(
             )
 
 
+def _fleet_settings(options: BenchOptions, settings: RunSettings) -> RunSettings:
+    """How the fleet (and the growth table's points) run: as `arena demo --vehicles N` deploys them."""
+    return replace(
+        settings,
+        settle=options.fleet_settle,
+        idle=max(settings.idle, 2.0),
+        vehicle_mode=options.vehicle_mode or "client",
+    )
+
+
+def _run_growth(
+    options: BenchOptions,
+    settings: RunSettings,
+    on_point: Callable[[PointResult], None],
+    timings: dict[str, float],
+    points: list[PointResult],
+) -> None:
+    """The growth table's points: each vehicle count deployed as the fleet is, the transform decimating
+    (a count the fleet point already measured so is not run again)."""
+    assert options.realistic_vision is not None
+    fleet_settings = _fleet_settings(options, settings)
+    for n in sorted(set(options.growth)):
+        if growth_point(points, n, options.realistic_vision) is not None:
+            continue
+        with _timed(timings, f"growth {n}"):
+            run_arena(
+                n,
+                options.rates[:1],
+                fleet_settings,
+                realistic_vision=options.realistic_vision,
+                on_point=on_point,
+                decimate="transform",
+                deployed_only=True,
+            )
+
+
 def _print_points(console: Console, points: list[PointResult]) -> None:
     console.print(_rich("End-to-end latency", LATENCY_HEADER, latency_rows(points)))
     console.print(_rich("CPU (% of one core) and memory", RESOURCE_HEADER, resource_rows(points)))
+    if growth_rows(points):
+        console.print(_rich("How cost grows", GROWTH_HEADER, growth_rows(points)))
     if hop_rows(points):
         console.print(_rich("Per stage, first vehicle (p50 / p99 ms)", HOPS_HEADER, hop_rows(points)))
 

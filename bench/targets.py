@@ -356,6 +356,13 @@ def fleet_targets(pts: Sequence[PointResult], n: int = FLEET) -> list[Target]:
             out.append(Target(name, goal, f"p50 {p.latency['p50']:.1f} ms, {text}", ok))
     if not out:
         out.append(Target(f"{_vehicles(n)} × 180 Hz as deployed (vision 50 Hz)", goal, "not run", None))
+    deployed = [p for p in at if _DEPLOYED.match(p.chain) and p.chain.startswith(CHAINS["transform"] + "-v")]
+    core_name = f"the whole arena's CPU at {_vehicles(n)} as deployed, transform decimating"
+    if deployed:
+        cpu = resource_summary(deployed[-1])["pipeline_cpu"]
+        out.append(Target(core_name, "under one core", f"{cpu:.0f} % of one core", cpu < 100.0))
+    else:
+        out.append(Target(core_name, "under one core", "not run", None))
     first = next((p for p in at if p.idle), None)
     rss_goal, cpu_goal = f"≤ {FLEET_IDLE_RSS_MB:g} MB each", f"≤ {FLEET_IDLE_CPU:g} % of one core each"
     rss_name = f"idle per-vehicle process RSS at {_vehicles(n)}"

@@ -527,8 +527,9 @@ def _keys_section() -> list[str]:
         "key and publisher id counts what the bus lost: a jump from n to n + k lost k − 1 samples. The first "
         "sample of an id starts its count (a late subscriber, a restarted publisher); a number at or below "
         "the last one is late, not a loss undone. Every arena service publishes what it counted this way in "
-        "`Stats.lost`, per key. A sample without this attachment (a one-off put, a replay, another program) "
-        "is unnumbered.",
+        "`Stats.lost`, per key. One-off puts (an emergency stop) are numbered per key within the session "
+        "that puts them. A sample without this attachment (a replay of a recording, another program) is "
+        "unnumbered.",
         "",
     ]
     return out

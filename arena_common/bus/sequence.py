@@ -8,8 +8,8 @@ and publisher, the last number seen; a jump of more than one is a loss of that m
 (:class:`GapCounter`).  A publisher seen for the first time (a late subscriber, a restarted publisher:
 a new id) starts a new count; a number at or below the last one is counted as *late*, not as a loss undone.
 
-Samples with no attachment of this shape (a one-off :meth:`~arena_common.bus.session.Bus.put`, another
-program) are counted as *unnumbered*: nobody can tell what was lost among them.
+Samples with no attachment of this shape (a replay of a recording, another program) are counted as
+*unnumbered*: nobody can tell what was lost among them.
 """
 
 from __future__ import annotations

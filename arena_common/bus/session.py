@@ -402,6 +402,8 @@ class Bus:
         self._closables: list[Any] = []
         self._subscriptions: list[Subscription] = []
         self._retired_lost: dict[str, int] = {}
+        self._put_id = new_publisher_id()
+        self._put_seq: dict[str, int] = {}
         self._lock = threading.Lock()
 
     # -- publishing -------------------------------------------------------------------------------
@@ -414,12 +416,15 @@ class Bus:
         return self._keep(Publisher(self, key, ptype, realtime=False))
 
     def put(self, key: str, payload: wire.Payload, realtime: bool = False) -> None:
-        """One-off publication."""
+        """One-off publication, numbered per key as a publisher's samples are (this session's own id)."""
+        with self._lock:
+            seq = self._put_seq[key] = self._put_seq.get(key, 0) + 1
         self.session.put(
             key,
             payload.encode(),
             encoding=zenoh.Encoding(payload.encoding()),
             congestion_control=zenoh.CongestionControl.DROP if realtime else zenoh.CongestionControl.BLOCK,
+            attachment=STAMP.pack(self._put_id, seq),
         )
 
     # -- subscribing ------------------------------------------------------------------------------

@@ -32,7 +32,7 @@ from bench.matching import (
     payload_sizes,
 )
 from bench.peer import summarise
-from bench.pipeline import vision_rates
+from bench.pipeline import PointResult, vision_rates
 from tests.helpers import REPO
 
 pytestmark = pytest.mark.system
@@ -142,13 +142,17 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
         peer_repeats=2,
         micro_scale=0.01,
         fleet=0,  # the fleet of 50 is make bench's, not a tiny run's
+        growth=(1,),  # the growth table's smallest point, deployed as the fleet is
         out_dir=tmp_path / "results",
         docs=docs,
         repo=REPO,
     )
     result = bench.run(options)
 
-    points = {p["chain"]: p for p in result["points"]}
+    growth = [p for p in result["points"] if p["vehicle_mode"] == "client"]
+    assert [(p["chain"], p["vehicles"], p["hogs"]) for p in growth] == [("arena-td-v50", 1, 0)], growth
+    assert growth[0]["idle"] and growth[0]["delivered"] > 0
+    points = {p["chain"]: p for p in result["points"] if p["vehicle_mode"] != "client"}
     assert set(points) == {
         "arena",
         "arena-td",
@@ -205,6 +209,7 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
         "make bench duration",
     }
     text = docs.read_text()
+    assert "**How cost grows**" in text and re.search(r"^\| 1 \| [\d.]+ \| [\d.]+ \|", text, re.M), text
     assert "Hand-written text stays." in text
     assert text.count(report.DOCS_BEGIN) == 1 and "| 1 × 180 Hz | arena |" in text
 
@@ -462,5 +467,24 @@ def test_the_fleet_point_is_judged_against_issue_27s_targets() -> None:
     up = t["start-up of 50 vehicles to vision from every vehicle"]
     assert up.met is True and up.measured.startswith("25.5 s: services alive 21.0 s")
     assert _targets(_result(250.0, points[1:]))["idle per-vehicle process RSS at 50 vehicles"].met is None
+    core = t["the whole arena's CPU at 50 vehicles as deployed, transform decimating"]
+    assert core.met is False and core.measured == "190 % of one core"  # router, ingest, transform, gateways
     no_fleet = _targets(_result(250.0, [_point("arena-td", 20, arena)]))
     assert not [name for name in no_fleet if "50 vehicles" in name]  # judged only when a fleet point ran
+
+
+def test_the_growth_table_reads_the_cost_per_vehicle_across_fleet_sizes() -> None:
+    """One row per vehicle count deployed as the fleet is (an explicit vehicle mode, no hogs); the default
+    configuration's points and the overloaded ones stay out."""
+    idle = {"gateway.d0": {"role": "gateway", "pid": 1, "cpu": 0.25, "rss": 40 << 20}}
+    points = [
+        _point("arena-td-v50", 1, {"router": 1.0, "ingest": 5.0, "transform": 6.0, "gateway": 3.0},
+               vehicle_mode="client", idle=idle),
+        _point("arena-td-v50", 10, {"router": 2.0, "ingest": 8.0, "transform": 20.0, "gateway": 30.0},
+               vehicle_mode="client", idle=idle, p50=1.5),
+        _point("arena-td-v50", 10, {"router": 9.0, "gateway": 90.0}, p50=9.0),  # the config's default mode
+        _point("arena-td-v50-loaded", 10, {"router": 9.0, "gateway": 90.0}, vehicle_mode="client", hogs=2),
+    ]  # fmt: skip
+    rows = report.growth_rows([PointResult(**p) for p in points])  # type: ignore[arg-type]
+    assert [r[:4] for r in rows] == [["1", "15.0", "15.00", "3.00"], ["10", "60.0", "6.00", "3.00"]], rows
+    assert rows[0][4] == "50.0" and rows[0][5] == "0.25" and rows[1][6] == "1.500", rows

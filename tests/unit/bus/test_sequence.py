@@ -1,5 +1,6 @@
 """Per-publisher sequence numbers: every sample a subscriber never got is counted, per key."""
 
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -8,7 +9,7 @@ from arena_common.bus.sequence import STAMP, GapCounter
 from arena_common.bus.session import Bus, Handler, Received
 from arena_common.core import keys, wire
 from arena_common.runtime.service import running
-from tests.helpers import wait_for
+from tests.helpers import REPO, wait_for
 
 POSE = wire.Pose(t=1, p=(0.0, 0.0, -1.0), q=(1.0, 0.0, 0.0, 0.0), ok=True)
 
@@ -107,3 +108,35 @@ def test_a_flood_a_slow_subscriber_cannot_carry_is_counted_to_the_sample(
     wait_for(has_the_last, 30.0, what="the last sample")
     assert key.received == len(seen) and key.late == 0 and key.unnumbered == 0
     print(f"published {pub.sent}, received {key.received}, lost (counted) {key.lost}")
+
+
+def test_one_off_puts_are_numbered_per_key(bus_factory: Callable[[], Bus]) -> None:
+    a, b = bus_factory(), bus_factory()
+    sub = b.subscribe(keys.ESTOP, capacity=100, ring=False)
+    estop = wire.Estop(t=1, reason="test")
+
+    def got() -> bool:
+        a.put(keys.ESTOP, estop)
+        return len(sub.channel) > 0
+
+    wait_for(got, what="an estop")
+    for _ in range(3):
+        a.put(keys.ESTOP, estop)
+    wait_for(lambda: sub.gaps.keys[keys.ESTOP].received >= 4, what="the three after it")
+    loss = sub.gaps.keys[keys.ESTOP]
+    assert loss.unnumbered == 0 and loss.lost == 0 and loss.late == 0, loss
+
+
+# Where a Zenoh publication may be declared: the bus (numbered), the ROS 2 node (rmw_zenoh's own numbered
+# attachment) and `arena rec replay` (a recording's bytes as they were: unnumbered, docs/wire.md).
+PUBLISHERS_ALLOWED = {"arena_common/bus/session.py", "arena_common/ros2/node.py", "arena_common/cli/_rec.py"}
+
+
+def test_no_module_publishes_around_the_numbered_publisher() -> None:
+    found = set()
+    for path in [*REPO.joinpath("arena_common").rglob("*.py"), *REPO.joinpath("services").rglob("*.py")]:
+        text = path.read_text()
+        if re.search(r"declare_publisher\(|session\.put\(", text):
+            found.add(str(path.relative_to(REPO)))
+    assert found <= PUBLISHERS_ALLOWED, sorted(found - PUBLISHERS_ALLOWED)
+    assert "arena_common/bus/session.py" in found  # the scan sees the one that must be there
