@@ -31,7 +31,7 @@ test: $(STAMP)
 
 # Whole-system tests: examples, fault injection, network namespaces, security, fuzzing, the short soak.
 test-system: $(STAMP)
-	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -m "system and not typed"
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q --durations=12 -m "system and not typed"
 
 # The typed tier: every command of README.md, docs/, `arena --help` and the systemd units, run as a user
 # types it (the real console script, shared options before and after, a config named on the line), and
@@ -42,11 +42,11 @@ test-system: $(STAMP)
 # slower than at -n 2 (0.6 cores on average), which leaves a core for the work beside it.
 TYPED_JOBS ?= 2
 test-typed: $(STAMP)
-	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n $(TYPED_JOBS) --dist worksteal -m typed tests/typed
+	PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q --durations=12 -n $(TYPED_JOBS) --dist worksteal -m typed tests/typed
 
 # The real-PX4 tier: PX4 v1.16 SITL (PX4_SITL_DIR, else ../shared/px4-sitl) flown through the arena.
 test-px4: $(STAMP)
-	$(BIN)/python -m pytest -q -m px4 tests/px4
+	$(BIN)/python -m pytest -q --durations=12 -m px4 tests/px4
 
 # PX4 SITL over a slow radio link, with and without the arena's compensation (three flights, ~4 min).
 test-radio: $(STAMP)
