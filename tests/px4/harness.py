@@ -33,10 +33,10 @@ from arena_common.geometry.frames import quat_yaw, wrap_angle
 from arena_common.mavlink.link import mavlink2
 from arena_common.runtime.options import read_config
 from arena_common.runtime.process import child_setup
-from arena_common.runtime.px4_sitl import MAX_INSTANCE, Px4Sitl, Px4SitlError, instance_busy
+from arena_common.runtime.px4_sitl import MAX_INSTANCE, Px4Sitl, Px4SitlError, instance_busy, is_true
 from arena_common.sim.linkdelay import LinkDelay
 from services.px4_sitl import boot_params
-from tests.conftest import REPO, free_port
+from tests.conftest import REPO, free_port, wait_for
 
 HOST = "test"
 SHARED = ("sim_mocap", "mocap_ingest", "frame_transform")  # the room and the ground computer
@@ -335,6 +335,27 @@ def timesync_converged(px4: Px4Sitl) -> bool:
     if not isinstance(arrival, int | float) or not isinstance(sample, int | float):
         return False
     return arrival - sample > 1000
+
+
+def wait_timesync_settled(px4: Px4Sitl, timeout: float = 150.0, hold: float = 2.0) -> None:
+    """Wait until PX4's TIMESYNC has converged and its pre-flight checks have passed for ``hold`` s since.
+
+    When the filter converges PX4's vision stamps switch from arrival to the gateway's measurement time,
+    and its estimate may drop out for a moment then: an arm in that moment is denied ("Resolve system
+    health failures first", seen once in a CI run), so a flight starts once PX4 is steady again.
+    """
+    wait_for(lambda: timesync_converged(px4), timeout, 1.0, "PX4's TIMESYNC to converge")
+    since: list[float] = []
+
+    def steady() -> bool:
+        if not is_true(px4.listener("vehicle_status"), "pre_flight_checks_pass"):
+            since.clear()
+            return False
+        if not since:
+            since.append(time.monotonic())
+        return time.monotonic() - since[0] >= hold
+
+    wait_for(steady, 30.0, 0.25, f"PX4's pre-flight checks to pass for {hold:g} s after TIMESYNC converged")
 
 
 def nav_state(status: Mapping[str, object]) -> str:

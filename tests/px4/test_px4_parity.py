@@ -19,9 +19,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import wait_for
 from tests.px4.conftest import PX4ArenaFactory
-from tests.px4.harness import FlightRecord, timesync_converged
+from tests.px4.harness import FlightRecord, wait_timesync_settled
 from tests.px4.parity import FIGURES, apart, fly, table
 
 RUNS = int(os.environ.get("ARENA_PARITY_RUNS", "1"))
@@ -59,7 +58,7 @@ def test_the_simulation_flies_as_px4(px4_arena: PX4ArenaFactory) -> None:
         stack, arena = px4_arena(("d1",))
         # PX4 takes the arena's stamps once its TIMESYNC converged (~50 s): fly as a lab's vehicle flies.
         px4 = stack.px4["d1"]
-        wait_for(lambda: timesync_converged(px4), 150, 1.0, "PX4's TIMESYNC to converge")  # noqa: B023
+        wait_timesync_settled(px4)
         px4_runs.append(fly(arena, "d1", FlightRecord(arena, "d1")))
         assert not stack.dead(), stack.dead()
         stack.close()  # PX4 stops before the simulation flies: one flight at a time on the machine

@@ -30,7 +30,7 @@ from arena_common import Arena
 from arena_common.cli._px4 import request
 from tests.conftest import wait_for
 from tests.px4.conftest import PX4ArenaFactory
-from tests.px4.harness import FlightRecord, timesync_converged
+from tests.px4.harness import FlightRecord, wait_timesync_settled
 from tests.px4.parity import fly
 
 LINK = (0.030, 0.010)  # s each way: delay, jitter (a telemetry radio, a busy Wi-Fi)
@@ -68,7 +68,7 @@ def test_px4_over_a_slow_link_with_and_without_compensation(px4_arena: PX4ArenaF
 
     stack, arena = px4_arena(("d1",))
     px4 = stack.px4["d1"]
-    wait_for(lambda: timesync_converged(px4), 150, 1.0, "PX4's TIMESYNC to converge")
+    wait_timesync_settled(px4)
     flights[DIRECT] = fly(arena, "d1", FlightRecord(arena, "d1"), PROGRAM)
     stack.close()
 

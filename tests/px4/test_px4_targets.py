@@ -51,9 +51,8 @@ import pytest
 
 from arena_common import Trajectory
 from arena_common.core.arrival import HEIGHT_TOLERANCE
-from tests.conftest import wait_for
 from tests.px4.conftest import PX4ArenaFactory
-from tests.px4.harness import FlightRecord, timesync_converged
+from tests.px4.harness import FlightRecord, wait_timesync_settled
 from tools.ulog_report import analyse, read_ulog, render
 
 HEIGHT = 1.0
@@ -79,7 +78,7 @@ def test_flight_targets_from_px4s_log(px4_arena: PX4ArenaFactory, tmp_path: Path
     d1 = arena.vehicle("d1")
     record = FlightRecord(arena, "d1")
     # PX4 converges after 500 answered requests at 10 Hz (src/lib/timesync/Timesync.hpp): ~50 s.
-    wait_for(lambda: timesync_converged(px4), timeout=150, interval=1.0, what="PX4's TIMESYNC to converge")
+    wait_timesync_settled(px4)
 
     d1.arm()
     took = d1.takeoff(HEIGHT, timeout=60)

@@ -29,7 +29,7 @@ from arena_common.bus.session import BusOptions, open_bus
 from arena_common.core.config import ZenohSpec
 from arena_common.runtime.px4_sitl import is_true
 from tests.conftest import free_port, wait_for
-from tests.px4.harness import FlightRecord, InstancePool, px4_stack, timesync_converged, write_px4_config
+from tests.px4.harness import FlightRecord, InstancePool, px4_stack, wait_timesync_settled, write_px4_config
 
 TARGETS = ((0.0, 0.0, -1.0), (0.0, 1.0, -1.0))  # arena NED, from a start at (-1, 0)
 
@@ -90,7 +90,7 @@ def fly(
             what="PX4's pre-flight checks to pass",
         )
         if timesync:
-            wait_for(lambda: timesync_converged(px4), timeout=150, interval=1.0, what="PX4's TIMESYNC")
+            wait_timesync_settled(px4)
         record = FlightRecord(arena, "d1")
         record.phase("ground")
         for attempt in range(3):  # PX4 may still say "horizontal position unstable" for a moment
