@@ -399,6 +399,43 @@ def target_rows(targets: Sequence[Target], markdown: bool = False) -> list[list[
     return [[t.name, t.goal, t.measured, mark[t.met]] for t in targets]
 
 
+def _point_parts(points: Sequence[PointResult]) -> list[str]:
+    """The load points' tables of the generated block: latency, CPU, growth and per stage."""
+    parts = [
+        "",
+        "**End-to-end latency** (NatNet frame leaves the emulator → its ODOMETRY leaves the gateway; "
+        "floors: the same topology moving bytes only; `-v50`: vision decimated to 50 Hz as deployed, "
+        "against the floor passing the same share; `-loaded`: the same with CPU hogs beside it; "
+        "poses/s: what each vehicle's socket received over the window)",
+        "",
+        _markdown(LATENCY_HEADER, latency_rows(points)),
+        "",
+        "**CPU** (% of one core over the measurement; per-vehicle services as mean (max); pipeline = "
+        "router, ingest, transform, downsamplers and gateways; × Zenoh floor: pipeline per vehicle "
+        "against the floor's) **and memory**",
+        "",
+        _markdown(RESOURCE_HEADER, resource_rows(points)),
+    ]
+    if growth_rows(points):
+        parts += [
+            "",
+            "**How cost grows** (vision 50 Hz as deployed, the transform decimating, each vehicle's "
+            "processes as `arena demo --vehicles N` runs them; % of one core over the window; RSS and "
+            "idle CPU: the vehicle services', mean per vehicle)",
+            "",
+            _markdown(GROWTH_HEADER, growth_rows(points)),
+        ]
+    if hop_rows(points):
+        parts += [
+            "",
+            "**Per stage**, first vehicle (p50 / p99 ms; each stage from the previous one's publish "
+            "stamp, so it includes the hop into it)",
+            "",
+            _markdown(HOPS_HEADER, hop_rows(points)),
+        ]
+    return parts
+
+
 def markdown_report(result: dict[str, Any]) -> str:
     """The generated block of ``docs/performance.md``: machine, targets and every table of a result."""
     m = result["machine"]
@@ -419,38 +456,7 @@ def markdown_report(result: dict[str, Any]) -> str:
         _markdown(["target", "goal", "measured", ""], target_rows(evaluate_targets(result), markdown=True)),
     ]
     if points:
-        parts += [
-            "",
-            "**End-to-end latency** (NatNet frame leaves the emulator → its ODOMETRY leaves the gateway; "
-            "floors: the same topology moving bytes only; `-v50`: vision decimated to 50 Hz as deployed, "
-            "against the floor passing the same share; `-loaded`: the same with CPU hogs beside it; "
-            "poses/s: what each vehicle's socket received over the window)",
-            "",
-            _markdown(LATENCY_HEADER, latency_rows(points)),
-            "",
-            "**CPU** (% of one core over the measurement; per-vehicle services as mean (max); pipeline = "
-            "router, ingest, transform, downsamplers and gateways; × Zenoh floor: pipeline per vehicle "
-            "against the floor's) **and memory**",
-            "",
-            _markdown(RESOURCE_HEADER, resource_rows(points)),
-        ]
-        if growth_rows(points):
-            parts += [
-                "",
-                "**How cost grows** (vision 50 Hz as deployed, the transform decimating, each vehicle's "
-                "processes as `arena demo --vehicles N` runs them; % of one core over the window; RSS and "
-                "idle CPU: the vehicle services', mean per vehicle)",
-                "",
-                _markdown(GROWTH_HEADER, growth_rows(points)),
-            ]
-        if hop_rows(points):
-            parts += [
-                "",
-                "**Per stage**, first vehicle (p50 / p99 ms; each stage from the previous one's publish "
-                "stamp, so it includes the hop into it)",
-                "",
-                _markdown(HOPS_HEADER, hop_rows(points)),
-            ]
+        parts += _point_parts(points)
     if result.get("peer"):
         peer = result["peer"]
         parts += [
