@@ -79,8 +79,6 @@ def main(
             while not svc.stopped:
                 px4.start()
                 boot = px4.wait_ready()
-                if px4.cpu_note is not None:
-                    svc.log.warning("%s: a busy computer may starve its simulated clock", px4.cpu_note)
                 svc.stats.count("boots")
                 svc.stats.set("up", 1)
                 svc.log.info(

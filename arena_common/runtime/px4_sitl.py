@@ -51,13 +51,6 @@ from arena_common.runtime.px4_sitl_rules import Ports as Ports
 from arena_common.runtime.px4_sitl_rules import Px4SitlError as Px4SitlError
 from arena_common.runtime.px4_sitl_rules import check_instance, ports
 
-# PX4 stands where the vehicle's own processor would be: SIH's lockstep clock advances only while it runs,
-# so a PX4 starved of CPU by the arena's processes beside it falls behind the wall clock, and once the
-# TIMESYNC offset it measures jumps by 100 ms ("time jump detected") it resets the filter and its vision
-# stamps jump: the estimate drops out and an offboard flight fails safe.  Each of the arena's processes
-# leads a session, and Linux's autogroup scheduling shares the CPU between sessions first: PX4 gets a
-# session too, whose group weighs this much niceness more (weight ~3x a process at 0).
-PX4_GROUP_NICE = -5
 ENV_DIR = "PX4_SITL_DIR"
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_DIR = REPO.parent / "shared" / "px4-sitl"
@@ -282,8 +275,6 @@ class Px4Sitl:
         self.ready_timeout = ready_timeout
         self.lines: collections.deque[str] = collections.deque(maxlen=2000)
         self.proc: subprocess.Popen[bytes] | None = None
-        #: Why PX4's scheduling group could not be favoured (None: it was, or no autogroup scheduling).
-        self.cpu_note: str | None = None
         self.boot_s: float | None = None  # seconds from start to ready, last boot
         self.boots = 0
         self.boot_start = 0.0
@@ -364,11 +355,9 @@ class Px4Sitl:
                     stderr=subprocess.STDOUT,
                     preexec_fn=child_setup(os.getpid(), signal.SIGKILL),  # dies with us
                     close_fds=True,
-                    start_new_session=True,  # a scheduling group of its own (below)
                 )
             except OSError as exc:
                 raise Px4SitlError(f"cannot start {argv[0]}: {exc.strerror or exc}") from None
-            self.cpu_note = _favour_group(self.proc.pid)
             self.boots += 1
             self._reader = threading.Thread(
                 target=self._pump, args=(self.proc,), name=f"px4-{self.instance}", daemon=True
@@ -564,19 +553,3 @@ def sitl_vehicle(cfg: ArenaConfig, vehicle: str) -> VehicleSpec:
 def boot_params(cfg: ArenaConfig, spec: VehicleSpec) -> dict[str, float]:
     """The boot parameters of a PX4 SITL vehicle (``sim.px4_params`` preset, then its ``px4_params``)."""
     return arena_boot_params(cfg.sim.px4_params, spec.px4_params)
-
-
-def _favour_group(pid: int) -> str | None:
-    """Give ``pid``'s session group :data:`PX4_GROUP_NICE`; why it could not, or None."""
-    path = Path(f"/proc/{pid}/autogroup")
-    for _ in range(10):
-        try:
-            path.write_text(str(PX4_GROUP_NICE))
-            return None
-        except FileNotFoundError:
-            return None  # not Linux, or no autogroup scheduling: nothing to weigh
-        except BlockingIOError:  # EAGAIN: the kernel allows one such change every 100 ms, machine-wide
-            time.sleep(0.11)
-        except OSError as exc:  # not permitted (needs CAP_SYS_NICE): PX4 runs as any process does
-            return f"PX4's CPU share stays as any session's ({exc.strerror or exc})"
-    return "PX4's CPU share stays as any session's (the kernel kept refusing the change)"

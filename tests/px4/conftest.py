@@ -156,8 +156,6 @@ def px4_arena(px4_pool: InstancePool, tmp_path: Path, router_endpoint: str) -> I
             print(
                 f"\nPX4 SITL {instances} booted in " + ", ".join(f"{s:.2f} s" for s in stack.boot_s.values())
             )
-            for note in {p.cpu_note for p in stack.px4.values() if p.cpu_note}:
-                print(f"note: {note}")
         print(f"logs: {tmp_path}")
         for name in vehicles:
             v = arena.vehicle(name)
