@@ -209,11 +209,11 @@ def growth_rows(points: Sequence[PointResult]) -> list[list[str]]:
     gateways) in all and per vehicle, the vehicle services' own share, their memory, idle CPU, latency and
     vision.  Flat columns mean a bigger computer buys proportionally more vehicles."""
     rows: list[list[str]] = []
-    deployed = sorted({(p.vehicles, float(m[1])) for p in points if (m := _GROWTH_CHAIN.fullmatch(p.chain))})
-    for n, vision in deployed:
-        p = growth_point(points, n, vision)
-        if p is None:
-            continue
+    first: dict[tuple[str, int], PointResult] = {}  # a vehicle count measured twice: its first point
+    for p in points:
+        if _GROWTH_CHAIN.fullmatch(p.chain) and not p.hogs and p.vehicle_mode:
+            first.setdefault((p.chain, p.vehicles), p)
+    for (_, n), p in sorted(first.items()):
         s = resource_summary(p)
         vehicle_rss = [info["rss"] / MB for info in p.per_service.values() if info["role"] in VEHICLE_ROLES]
         idle = [v for name, v in s["idle_cpu"].items() if p.idle[name]["role"] in VEHICLE_ROLES]
@@ -416,14 +416,15 @@ def _point_parts(points: Sequence[PointResult]) -> list[str]:
         "",
         _markdown(RESOURCE_HEADER, resource_rows(points)),
     ]
-    if growth_rows(points):
+    growth = growth_rows(points)
+    if growth:
         parts += [
             "",
             "**How cost grows** (vision 50 Hz as deployed, the transform decimating, each vehicle's "
             "processes as `arena demo --vehicles N` runs them; % of one core over the window; RSS and "
             "idle CPU: the vehicle services', mean per vehicle)",
             "",
-            _markdown(GROWTH_HEADER, growth_rows(points)),
+            _markdown(GROWTH_HEADER, growth),
         ]
     if hop_rows(points):
         parts += [

@@ -510,8 +510,9 @@ def _run_growth(
 def _print_points(console: Console, points: list[PointResult]) -> None:
     console.print(_rich("End-to-end latency", LATENCY_HEADER, latency_rows(points)))
     console.print(_rich("CPU (% of one core) and memory", RESOURCE_HEADER, resource_rows(points)))
-    if growth_rows(points):
-        console.print(_rich("How cost grows", GROWTH_HEADER, growth_rows(points)))
+    growth = growth_rows(points)
+    if growth:
+        console.print(_rich("How cost grows", GROWTH_HEADER, growth))
     if hop_rows(points):
         console.print(_rich("Per stage, first vehicle (p50 / p99 ms)", HOPS_HEADER, hop_rows(points)))
 

@@ -76,8 +76,3 @@ class GapCounter:
         """Samples lost so far, per key (keys with none left out)."""
         with self._lock:
             return {k: v.lost for k, v in self.keys.items() if v.lost}
-
-    def total_lost(self) -> int:
-        """Samples lost so far on every key."""
-        with self._lock:
-            return sum(v.lost for v in self.keys.values())
