@@ -121,6 +121,7 @@ class Gateway:
             send_velocity=o.send_velocity,
             stats=self.stats,
             offset_ns=clock.offset_ns if clock is not None else None,
+            stamp_us=self.timesync.autopilot_us,
             source=keys.vision(v.name),
         )
         self.health = Health(self.link, self.vision, self.clock_watch, self.stats, self.events, self.log)

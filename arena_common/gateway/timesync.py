@@ -9,6 +9,17 @@ with its arrival time instead of our ``time_usec``; five samples in a row more t
 estimate (a step of our clock) start it over.  An answer's TIMESYNC target fields are left 0 (broadcast):
 MAVLink 2 drops trailing zero bytes, so the frame is the same as one without those extension fields, and
 PX4 v1.16 SITL converged on it after exactly 500 requests (measured).
+
+Our answers carry **the autopilot's own clock**, as we estimate it (MAVSDK answers with its "autopilot
+time" the same way), not this host's: PX4's filter then sees an offset that stays put, whatever either
+clock does.  Answering with this host's clock made PX4 SITL reset its filter ("time jump"): its lockstep
+clock runs 1–3 % slower than the wall clock, at a rate that changes with the machine's load and with
+pauses of up to ~50 ms (measured), which PX4's filter, tuned for two crystals, cannot follow; a step of
+this host's wall clock (NTP) would do the same on a real vehicle.  The estimate is a least-squares line
+(offset and skew) through our last :data:`WINDOW` round trips on this host's monotonic clock; we ask
+each time PX4 asks (10 Hz) and once a second, and answer PX4 only once :data:`MIN_SAMPLES` were measured
+(an answer before would start its filter on a clock that is about to jump).  Vision ``time_usec`` is
+stamped on the same estimate, so PX4 maps it onto its clock by an offset of about 0.
 """
 
 from __future__ import annotations
@@ -23,32 +34,119 @@ from arena_common.mavlink.link import MavlinkLink
 
 PX4_CONVERGENCE_WINDOW = 500  # accepted samples before PX4 uses its offset (Timesync.hpp)
 PX4_MAX_RTT_S = 0.010  # PX4 ignores samples with a longer round trip (Timesync.hpp MAX_RTT_SAMPLE)
-MIN_ROUND_TRIPS = 8  # of our own (one a second) before saying whether PX4 can take our clock
+MIN_ROUND_TRIPS = 8  # of our own before saying whether PX4 can take our clock
+WINDOW = 8  # round trips the clock estimate is fitted through (at 10 Hz, PX4 SITL's wander is followed)
+MIN_SAMPLES = 3  # round trips measured before PX4's requests are answered
+STEP_NS = 20_000_000  # a sample this far off the fit (and further than its round trip) is a step
+MIN_SPAN_NS = 300_000_000  # the skew is fitted through round trips spanning this much at least
+
+
+class AutopilotClock:
+    """The autopilot's clock as seen from ours: offset and skew fitted through recent round trips.
+
+    A round trip gives one sample: the autopilot's time ``tc1`` against the midpoint of our send and
+    receive times.  Samples whose round trip is much longer than the window's fastest are left out (their
+    midpoint is uncertain by half of it).  All times are ns on our clock (monotonic).
+    """
+
+    def __init__(self, window: int = WINDOW) -> None:
+        self.samples: collections.deque[tuple[int, int, int]] = collections.deque(maxlen=window)
+        self._t0 = 0  # the fit: offset o0 at our time t0, and skew (ns of offset per ns)
+        self._o0 = 0.0
+        self.skew = 0.0
+        self.steps = 0  # steps of either clock seen
+        self.known = False  # MIN_SAMPLES round trips were fitted since the last clear (a step keeps it)
+        self.skew_fitted = False  # through round trips spanning MIN_SPAN_NS: from then on steps are told
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def add(self, t_mid: int, offset: int, rtt: int) -> None:
+        """One round trip: its midpoint on our clock, the autopilot's clock minus ours then, its length.
+        A sample further off the fit than :data:`STEP_NS` and its own round trip is a step of either
+        clock (SITL's stopped): the fit starts over from it, keeping the skew (told once one was fitted)."""
+        if self.skew_fitted and abs(offset - self.offset_at(t_mid)) > max(STEP_NS, rtt):
+            self.samples.clear()
+            self.steps += 1
+        self.samples.append((t_mid, offset, rtt))
+        self.known = self.known or len(self.samples) >= MIN_SAMPLES
+        fastest = min(r for _, _, r in self.samples)
+        good = [(t, o) for t, o, r in self.samples if r <= 2 * fastest + 1_000_000]
+        t0 = good[-1][0]
+        ts = [t - t0 for t, _ in good]
+        os_ = [float(o) for _, o in good]
+        t_mean, o_mean = statistics.fmean(ts), statistics.fmean(os_)
+        if len(good) >= 3 and ts[-1] - ts[0] >= MIN_SPAN_NS:  # else a few ms of noise would tilt it
+            var = sum((t - t_mean) ** 2 for t in ts)
+            self.skew = sum((t - t_mean) * (o - o_mean) for t, o in zip(ts, os_, strict=True)) / var
+            self.skew_fitted = True
+        self._t0, self._o0 = t0, o_mean - self.skew * t_mean
+
+    def offset_at(self, t: int) -> int:
+        """The autopilot's clock minus ours at our time ``t`` (ns), from the fit (extrapolated)."""
+        return int(self._o0 + self.skew * (t - self._t0))
+
+    def clear(self) -> None:
+        """Forget everything (the autopilot rebooted)."""
+        self.samples.clear()
+        self.skew = 0.0
+        self.known = self.skew_fitted = False
 
 
 class TimeSync:
-    """Answers the autopilot's TIMESYNC requests at once, and measures round trip and offset with our own.
+    """Answers the autopilot's TIMESYNC requests with its own clock, and measures round trip and offset.
 
-    Our clock is ``clock_ns`` (wall-clock ns by default): the same clock stamps vision ``time_usec``.
-    The offset is the autopilot's clock minus ours, from the fastest of the last 16 round trips.
-    ``answered_since_reset`` counts the autopilot's requests answered since the gateway started or the
-    autopilot rebooted; :attr:`autopilot_converged` says whether PX4 has had enough of them to use our
-    stamps (its own view: ``timesync_status`` / vision ``timestamp_sample`` in its log).
+    ``clock_ns`` is our clock for round trips and answers (monotonic by default); ``wall_ns`` the clock
+    pose times are on (:meth:`autopilot_us` converts them).  The offset is the autopilot's clock minus
+    ours (:class:`AutopilotClock`).  ``answered_since_reset`` counts the autopilot's requests answered
+    since the gateway started or the autopilot rebooted; :attr:`autopilot_converged` says whether PX4 has
+    had enough of them to use our stamps (its own view: ``timesync_status`` / vision ``timestamp_sample``
+    in its log).  ``unanswered`` counts its requests met before our estimate stood (not answered).
     """
 
-    def __init__(self, link: MavlinkLink, clock_ns: Callable[[], int] = time.time_ns) -> None:
+    def __init__(
+        self,
+        link: MavlinkLink,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+        wall_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
         self.link = link
         self.clock_ns = clock_ns
+        self.wall_ns = wall_ns
+        self.autopilot = AutopilotClock()
         self._pending: collections.OrderedDict[int, None] = collections.OrderedDict()
         self._samples: collections.deque[tuple[int, int]] = collections.deque(maxlen=16)
         self.answered = 0
         self.answered_since_reset = 0
+        self.unanswered = 0
         self.rtt_s: float | None = None
         self.offset_s: float | None = None
         self.rtt_min_s: float | None = None
         self.jitter_s: float | None = None
         self.measured = 0  # answers to our own requests measured
         self.accepted_since_reset = 0  # answers given while the link's round trip was under PX4's limit
+        self.epoch = 0  # the estimates so far: stamps of two epochs are on two clocks
+
+    @property
+    def locked(self) -> bool:
+        """Whether the autopilot's clock is known (:data:`MIN_SAMPLES` round trips since the last reset)."""
+        return self.autopilot.known
+
+    def autopilot_ns(self, t: int | None = None) -> int | None:
+        """Our time ``t`` (ns, :attr:`clock_ns`; now when None) on the autopilot's clock; None before
+        :attr:`locked`."""
+        if not self.locked:
+            return None
+        t = self.clock_ns() if t is None else t
+        return t + self.autopilot.offset_at(t)
+
+    def autopilot_us(self, t_wall_ns: int) -> int | None:
+        """A time on this host's wall clock (a pose's, ns) on the autopilot's clock, µs: how vision is
+        stamped.  None before :attr:`locked` (PX4 then stamps on arrival: it has had no answer)."""
+        if not self.locked:
+            return None
+        t = t_wall_ns + (self.clock_ns() - self.wall_ns())
+        return (t + self.autopilot.offset_at(t)) // 1000
 
     @property
     def autopilot_converged(self) -> bool:
@@ -87,26 +185,35 @@ class TimeSync:
         return "" if self.rtt_s is None else "arrival"
 
     def fields(self) -> dict[str, Any]:
-        """The gateway's ``timesync`` telemetry: round trip (last, fastest of 16) and offset [s], answers
-        given, and whether PX4 should by now take our vision stamps (:attr:`autopilot_converged`)."""
+        """The gateway's ``timesync`` telemetry: round trip (last, fastest of 16) and offset [s], the
+        autopilot clock's skew, answers given (and requests left unanswered before our estimate stood),
+        and whether PX4 should by now take our vision stamps (:attr:`autopilot_converged`)."""
         return {
             "rtt": self.rtt_s,
             "rtt_min": self.rtt_min_s,
             "offset": self.offset_s,
+            "skew": self.autopilot.skew if self.locked else None,
             "jitter": self.jitter_s,
             "answered": self.answered,
+            "unanswered": self.unanswered,
             "autopilot_converged": self.autopilot_converged,
         }
 
     def on_timesync(self, msg: Any, now: float) -> None:
-        """A TIMESYNC from the autopilot: a request (``tc1`` 0) is answered at once with our clock in
-        ``tc1`` and its ``ts1`` echoed (both ns); an answer to one of ours updates round trip and offset."""
+        """A TIMESYNC from the autopilot.  A request (``tc1`` 0) is answered at once with its own clock in
+        ``tc1`` and its ``ts1`` echoed (both ns), once our estimate stands; and we ask back, so the estimate
+        follows its clock at the rate it asks.  An answer to one of ours updates round trip and offset."""
         if msg.tc1 == 0:
-            self.answered += 1  # counted first: whoever sees the answer sees it counted
-            self.answered_since_reset += 1
-            if self.rtt_s is None or self.rtt_s < PX4_MAX_RTT_S:  # unmeasured yet: as PX4 on loopback
-                self.accepted_since_reset += 1
-            self.link.send(self.link.mav.timesync_encode(self.clock_ns(), msg.ts1))
+            tc1 = self.autopilot_ns()
+            if tc1 is None:
+                self.unanswered += 1
+            else:
+                self.answered += 1  # counted first: whoever sees the answer sees it counted
+                self.answered_since_reset += 1
+                if self.rtt_s is None or self.rtt_s < PX4_MAX_RTT_S:
+                    self.accepted_since_reset += 1
+                self.link.send(self.link.mav.timesync_encode(max(1, tc1), msg.ts1))
+            self.request()
             return
         if msg.ts1 not in self._pending:
             return  # an answer to someone else (a GCS through the forwarder)
@@ -118,12 +225,16 @@ class TimeSync:
         if self._samples:  # RFC 3550's interarrival jitter, over round trips: J += (|D| - J) / 16
             change = abs(rtt - self._samples[-1][0]) * 1e-9
             self.jitter_s = change if self.jitter_s is None else self.jitter_s + (change - self.jitter_s) / 16
-        self._samples.append((rtt, msg.tc1 - (msg.ts1 + t_now) // 2))
+        t_mid = (msg.ts1 + t_now) // 2
+        offset = msg.tc1 - t_mid
+        self._samples.append((rtt, offset))
+        if not self.autopilot.samples:
+            self.epoch += 1
+        self.autopilot.add(t_mid, offset, rtt)
         self.measured += 1
-        best = min(self._samples)
         self.rtt_s = rtt * 1e-9
-        self.rtt_min_s = best[0] * 1e-9
-        self.offset_s = best[1] * 1e-9
+        self.rtt_min_s = min(self._samples)[0] * 1e-9
+        self.offset_s = self.autopilot.offset_at(t_now) * 1e-9
 
     def request(self) -> None:
         """Send one TIMESYNC request (tc1 = 0, ts1 = our clock)."""
@@ -136,6 +247,7 @@ class TimeSync:
     def reset(self) -> None:
         """Forget the measurements (the autopilot rebooted: its clock and its TIMESYNC filter restarted)."""
         self._samples.clear()
+        self.autopilot.clear()
         self.offset_s = None
         self.jitter_s = None
         self.answered_since_reset = 0

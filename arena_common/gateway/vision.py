@@ -32,9 +32,11 @@ class VisionSender:
 
     A pose's ``t`` is on the mocap host's clock.  ``offset_ns`` (when given) returns that clock minus
     ours (:class:`~arena_common.runtime.clock.ClockSync`, None while unknown): ages are judged, and
-    ODOMETRY's ``time_usec`` stamped, on our clock — the one TIMESYNC shares with the autopilot — whatever
-    our wall clock says; their error is the offset's uncertainty.  Without it (or while unknown) both
-    clocks are taken to agree.
+    ODOMETRY's ``time_usec`` stamped, on our clock whatever our wall clock says; their error is the
+    offset's uncertainty.  Without it (or while unknown) both clocks are taken to agree.  ``stamp_us``
+    (when given: :meth:`~arena_common.gateway.timesync.TimeSync.autopilot_us`) puts that time on the
+    autopilot's clock, the one our TIMESYNC answers give it; while it returns None, ``time_usec`` is on
+    ours (the autopilot has had no answer then, and stamps on arrival).
     """
 
     def __init__(
@@ -50,6 +52,7 @@ class VisionSender:
         max_speed: float = 1e3,
         stats: Stats | None = None,
         offset_ns: Callable[[], int | None] | None = None,
+        stamp_us: Callable[[int], int | None] | None = None,
         source: str = "the vision key",
     ) -> None:
         if message not in ("odometry", "vision_position_estimate"):
@@ -66,7 +69,9 @@ class VisionSender:
         self.max_speed = max_speed
         self.stats = stats or Stats()
         self.offset_ns = offset_ns
+        self.stamp_us = stamp_us
         self.last_usec = -1
+        self._on_autopilot_clock = False
         self.reset_counter = 0
         self.sent = 0
         self.last_t = -1
@@ -139,8 +144,12 @@ class VisionSender:
                 self.bump_reset()
         self._last_rc = pose.rc
         packs = self.link.pack_errors
-        # A new offset estimate may move t_local back by its (µs) correction: keep time_usec increasing.
-        usec = max(t_local // 1000, self.last_usec + 1)
+        stamped = self.stamp_us(t_local) if self.stamp_us is not None else None
+        if (stamped is not None) != self._on_autopilot_clock:  # another clock: no order with the last stamp
+            self._on_autopilot_clock = stamped is not None
+            self.last_usec = -1
+        # A new offset estimate may move a stamp back by its correction: keep time_usec increasing.
+        usec = max(t_local // 1000 if stamped is None else stamped, self.last_usec + 1)
         mav = self.link.mav
         deadline_ns = t_local + self.max_age_ns
 

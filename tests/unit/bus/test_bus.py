@@ -175,6 +175,17 @@ def test_a_vehicles_process_joins_as_a_client_when_the_config_says(
         assert first is not None and isinstance(first.payload, wire.Stats)
 
 
+def _zenoh_threads(pid: int) -> list[str]:
+    """The names of a process's Zenoh runtime threads (``net-0``, ``app-0``, ...)."""
+    names = []
+    for comm in Path(f"/proc/{pid}/task").glob("*/comm"):
+        try:
+            names.append(comm.read_text().strip())
+        except OSError:
+            pass
+    return [n for n in names if n.startswith(("net-", "app-"))]
+
+
 def test_ctrl_c_stops_a_client_still_waiting_for_its_router(tmp_path: Path) -> None:
     """A client waits up to 10 s for its router inside ``zenoh.open``: Ctrl-C must stop it at once anyway."""
     path = write_config(tmp_path, f"tcp/127.0.0.1:{free_port()}")  # nobody listens there
@@ -189,7 +200,13 @@ def test_ctrl_c_stops_a_client_still_waiting_for_its_router(tmp_path: Path) -> N
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
-        time.sleep(2.0)  # it is waiting for the router now (or still importing: Ctrl-C stops that too)
+        # Zenoh's runtime threads exist once ``zenoh.open`` runs: then it is waiting for the router (a Ctrl-C
+        # during the imports before, on a slow machine, ends the process by the signal itself, as Python does).
+        deadline = time.monotonic() + 60.0
+        while not _zenoh_threads(proc.pid) and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert _zenoh_threads(proc.pid), "the client never started opening its Zenoh session"
+        time.sleep(0.5)
         assert proc.poll() is None
         started = time.monotonic()
         proc.send_signal(signal.SIGINT)

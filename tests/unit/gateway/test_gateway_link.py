@@ -232,26 +232,37 @@ def test_vision_sender_odometry_fields_and_rules(link_pair: tuple[MavlinkLink, A
     assert math.isnan(msg.covariance[0])
 
 
-def test_timesync_answers_at_once_and_measures_the_link(link_pair: tuple[MavlinkLink, Any]) -> None:
+def test_timesync_measures_the_link_then_answers_on_the_autopilots_clock(
+    link_pair: tuple[MavlinkLink, Any],
+) -> None:
     link, vehicle = link_pair
     clock = [1_000_000_000_000]
     ts = TimeSync(link, clock_ns=lambda: clock[0])
     pump = Pump(link, {MSG["TIMESYNC"]: ts.on_timesync})
     try:
-        vehicle.mav.timesync_send(0, 777_000)  # the autopilot asks
-        answer = recv(vehicle, "TIMESYNC")
-        assert (answer.tc1, answer.ts1) == (clock[0], 777_000)
-        ts.request()  # we ask; the vehicle answers with its own clock
+        vehicle.mav.timesync_send(0, 777_000)  # the autopilot asks: not answered yet, but asked back
         request = recv(vehicle, "TIMESYNC")
         assert request.tc1 == 0 and request.ts1 == clock[0]
-        clock[0] += 4_000_000  # 4 ms later, our clock
-        vehicle.mav.timesync_send(5_000_000_000, request.ts1)
-        wait_for(lambda: ts.rtt_s is not None, 2.0, what="round trip measured")
-        assert ts.rtt_s == pytest.approx(0.004)
-        assert ts.offset_s == pytest.approx((5_000_000_000 - (request.ts1 + clock[0]) // 2) * 1e-9)
+        wait_for(lambda: ts.unanswered == 1, 2.0, what="the request counted unanswered")
+        for k in range(3):  # the vehicle answers with its own clock, 4 ms later on ours
+            if k:
+                ts.request()
+                request = recv(vehicle, "TIMESYNC")
+            clock[0] += 4_000_000
+            vehicle.mav.timesync_send(5_000_000_000 + k * 104_000_000, request.ts1)
+            wait_for(lambda: ts.measured == k + 1, 2.0, what=f"round trip {k} measured")  # noqa: B023
+            clock[0] += 100_000_000
+        assert ts.rtt_s == pytest.approx(0.004) and ts.locked
+        # Its clock runs as ours (104 ms a round trip on both): the offset is its clock minus ours.
+        assert ts.autopilot.skew == pytest.approx(0.0, abs=1e-9)
+        assert ts.offset_s == pytest.approx((5_000_000_000 - (1_000_000_000_000 + 2_000_000)) * 1e-9)
+        vehicle.mav.timesync_send(0, 888_000)  # asked again: answered with its clock, as we know it
+        answer = recv(vehicle, "TIMESYNC")
+        assert ts.offset_s is not None
+        assert answer.ts1 == 888_000 and answer.tc1 == clock[0] + round(ts.offset_s * 1e9)
         vehicle.mav.timesync_send(9, 123)  # an answer to someone else: ignored
         time.sleep(0.2)
-        assert ts.rtt_s == pytest.approx(0.004) and ts.answered == 1
+        assert ts.rtt_s == pytest.approx(0.004) and ts.answered == 1 and ts.unanswered == 1
     finally:
         pump.close()
 
