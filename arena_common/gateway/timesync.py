@@ -125,7 +125,6 @@ class TimeSync:
         self.jitter_s: float | None = None
         self.measured = 0  # answers to our own requests measured
         self.accepted_since_reset = 0  # answers given while the link's round trip was under PX4's limit
-        self.epoch = 0  # the estimates so far: stamps of two epochs are on two clocks
 
     @property
     def locked(self) -> bool:
@@ -186,13 +185,15 @@ class TimeSync:
 
     def fields(self) -> dict[str, Any]:
         """The gateway's ``timesync`` telemetry: round trip (last, fastest of 16) and offset [s], the
-        autopilot clock's skew, answers given (and requests left unanswered before our estimate stood),
-        and whether PX4 should by now take our vision stamps (:attr:`autopilot_converged`)."""
+        autopilot clock's skew and the steps of either clock followed, answers given (and requests left
+        unanswered before our estimate stood), and whether PX4 should by now take our vision stamps
+        (:attr:`autopilot_converged`)."""
         return {
             "rtt": self.rtt_s,
             "rtt_min": self.rtt_min_s,
             "offset": self.offset_s,
             "skew": self.autopilot.skew if self.locked else None,
+            "steps": self.autopilot.steps,
             "jitter": self.jitter_s,
             "answered": self.answered,
             "unanswered": self.unanswered,
@@ -228,8 +229,6 @@ class TimeSync:
         t_mid = (msg.ts1 + t_now) // 2
         offset = msg.tc1 - t_mid
         self._samples.append((rtt, offset))
-        if not self.autopilot.samples:
-            self.epoch += 1
         self.autopilot.add(t_mid, offset, rtt)
         self.measured += 1
         self.rtt_s = rtt * 1e-9

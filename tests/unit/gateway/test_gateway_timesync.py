@@ -258,6 +258,7 @@ def test_px4_filter_converges_on_the_answers_and_maps_our_stamps(
             stamp = ts.autopilot_us(wall)
             assert stamp is not None
             assert abs(px4.sync_stamp(stamp, px4_now) - px4_now) < 5_000, (stamp, px4_now, px4)
+        assert ts.fields()["steps"] >= 1  # the stop was seen as one
         ts.reset()  # PX4 rebooted: its filter starts over, and so does our estimate
         assert not ts.autopilot_converged and ts.answered_since_reset == 0 and not ts.locked
         assert ts.autopilot_us(time.time_ns()) is None
