@@ -172,7 +172,7 @@ class Arrival:
     mono: float  # time.monotonic() at arrival
     name: str
     problem: str  # empty when the message is one a vehicle may be sent
-    age: float = math.nan  # ODOMETRY: arrival wall clock minus its time_usec (measurement to vehicle), s
+    age: float = math.nan  # ODOMETRY: arrival minus its time_usec, on the clock it is on (measurement to vehicle), s
     p: tuple[float, float, float] | None = None  # ODOMETRY position, SET_POSITION_TARGET position
 
 
@@ -209,6 +209,8 @@ def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
+WALL_EPOCH_US = 10**15  # 2001 in µs since 1970: a stamp below is on a boot clock (31 years of uptime)
+
 #: Commands that only ask the autopilot for messages (the gateway's own: origin, estimator status).
 DATA_REQUESTS = frozenset({px4.MAV_CMD_SET_MESSAGE_INTERVAL, px4.MAV_CMD_REQUEST_MESSAGE})
 
@@ -234,7 +236,7 @@ class TapAutopilot(SimAutopilot):
                 problem = self._judge(name, msg)
                 if name == "COMMAND_LONG" and msg.command in DATA_REQUESTS:
                     name = "COMMAND_LONG (data request)"  # the gateway asking for messages, not acting
-                age = time.time() - msg.time_usec * 1e-6 if name == "ODOMETRY" else math.nan
+                age = self.stamp_age(msg.time_usec) if name == "ODOMETRY" else math.nan
                 p = (msg.x, msg.y, msg.z) if hasattr(msg, "x") else None
                 with self.tap.lock:
                     self.tap.counts[name] += 1
@@ -243,6 +245,14 @@ class TapAutopilot(SimAutopilot):
                         self.tap.invalid.append((name, problem))
         return msg
 
+    def stamp_age(self, time_usec: int) -> float:
+        """How old a vision stamp is now (s), on the clock it is on: the autopilot's boot clock once the
+        gateway knows it (its TIMESYNC answers and its stamps follow it), this host's wall clock before
+        (µs since 1970: a stamp that large is no boot clock's)."""
+        if time_usec >= WALL_EPOCH_US:
+            return time.time() - time_usec * 1e-6
+        return self.sim.time - time_usec * 1e-6
+
     def _judge(self, name: str, msg: Any) -> str:
         if name == "ODOMETRY":
             if not _finite(msg.x, msg.y, msg.z) or max(abs(msg.x), abs(msg.y), abs(msg.z)) > 1000.0:
@@ -250,7 +260,7 @@ class TapAutopilot(SimAutopilot):
             q = [float(c) for c in msg.q]
             if not _finite(*q) or abs(math.sqrt(sum(c * c for c in q)) - 1.0) > 1e-3:
                 return f"quaternion {q}"
-            if msg.time_usec > (time.time_ns() // 1000) + 200_000:
+            if self.stamp_age(msg.time_usec) < -0.2:
                 return f"time stamp {msg.time_usec} µs is in the future"
             return ""
         if name == "SET_POSITION_TARGET_LOCAL_NED":
