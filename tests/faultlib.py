@@ -172,7 +172,7 @@ class Arrival:
     mono: float  # time.monotonic() at arrival
     name: str
     problem: str  # empty when the message is one a vehicle may be sent
-    age: float = math.nan  # ODOMETRY: arrival minus its time_usec, on the clock it is on (measurement to vehicle), s
+    age: float = math.nan  # ODOMETRY: arrival minus its time_usec on the clock it is on, s
     p: tuple[float, float, float] | None = None  # ODOMETRY position, SET_POSITION_TARGET position
 
 
