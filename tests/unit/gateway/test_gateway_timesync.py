@@ -180,9 +180,9 @@ def test_px4_v116_requests_answered_in_ns_and_echoed_exactly(
             got = answer_to(sock, ts1, px4_ns)
             assert got is not None
             tc1, echoed, answer_target_system, answer_target_component = got
-            assert (
-                ts1 <= tc1 <= px4_ns() + 1_000_000
-            )  # ns of PX4's own clock, as we know it: PX4 divides by 1000
+            # ns of PX4's own clock as we know it (PX4 divides by 1000): known within the round trips it
+            # was measured by, a few ms at most on a busy machine.
+            assert ts1 - 5_000_000 <= tc1 <= px4_ns() + 5_000_000, (tc1 - ts1, ts.rtt_min_s)
             assert echoed == ts1  # bit for bit: PX4 computes the round trip from it
             assert (answer_target_system, answer_target_component) == (0, 0)  # broadcast: PX4 accepts it
         assert ts.answered == ts.answered_since_reset == 3
@@ -257,7 +257,7 @@ def test_px4_filter_converges_on_the_answers_and_maps_our_stamps(
             wall, px4_now = time.time_ns(), clock() // 1000
             stamp = ts.autopilot_us(wall)
             assert stamp is not None
-            assert abs(px4.sync_stamp(stamp, px4_now) - px4_now) < 5_000, (stamp, px4_now, px4)
+            assert abs(px4.sync_stamp(stamp, px4_now) - px4_now) < 10_000, (stamp, px4_now, px4)
         assert ts.fields()["steps"] >= 1  # the stop was seen as one
         ts.reset()  # PX4 rebooted: its filter starts over, and so does our estimate
         assert not ts.autopilot_converged and ts.answered_since_reset == 0 and not ts.locked
