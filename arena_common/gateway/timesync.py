@@ -13,9 +13,9 @@ PX4 v1.16 SITL converged on it after exactly 500 requests (measured).
 Our answers carry **the autopilot's own clock**, as we estimate it (MAVSDK answers with its "autopilot
 time" the same way), not this host's: PX4's filter then sees an offset that stays put, whatever either
 clock does.  Answering with this host's clock made PX4 SITL reset its filter ("time jump"): its lockstep
-clock runs 1–3 % slower than the wall clock, at a rate that changes with the machine's load and with
-pauses of up to ~50 ms (measured), which PX4's filter, tuned for two crystals, cannot follow; a step of
-this host's wall clock (NTP) would do the same on a real vehicle.  The estimate is a least-squares line
+clock runs 1–3 % slower than the wall clock, at a rate that changes with the machine's load, and stops
+now and then (measured: docs/px4.md), which PX4's filter, tuned for two crystals, cannot follow; a step
+of this host's wall clock (NTP) would do the same on a real vehicle.  The estimate is a least-squares line
 (offset and skew) through our last :data:`WINDOW` round trips on this host's monotonic clock; we ask
 each time PX4 asks (10 Hz) and once a second, and answer PX4 only once :data:`MIN_SAMPLES` were measured
 (an answer before would start its filter on a clock that is about to jump).  Vision ``time_usec`` is
@@ -30,10 +30,11 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from arena_common.mavlink import px4
 from arena_common.mavlink.link import MavlinkLink
 
-PX4_CONVERGENCE_WINDOW = 500  # accepted samples before PX4 uses its offset (Timesync.hpp)
-PX4_MAX_RTT_S = 0.010  # PX4 ignores samples with a longer round trip (Timesync.hpp MAX_RTT_SAMPLE)
+PX4_CONVERGENCE_WINDOW = px4.TIMESYNC_CONVERGENCE_WINDOW  # accepted samples before PX4 uses its offset
+PX4_MAX_RTT_S = px4.TIMESYNC_MAX_RTT_US * 1e-6  # PX4 ignores samples with a longer round trip
 MIN_ROUND_TRIPS = 8  # of our own before saying whether PX4 can take our clock
 WINDOW = 8  # round trips the clock estimate is fitted through (at 10 Hz, PX4 SITL's wander is followed)
 MIN_SAMPLES = 3  # round trips measured before PX4's requests are answered
@@ -57,9 +58,6 @@ class AutopilotClock:
         self.steps = 0  # steps of either clock seen
         self.known = False  # MIN_SAMPLES round trips were fitted since the last clear (a step keeps it)
         self.skew_fitted = False  # through round trips spanning MIN_SPAN_NS: from then on steps are told
-
-    def __len__(self) -> int:
-        return len(self.samples)
 
     def add(self, t_mid: int, offset: int, rtt: int) -> None:
         """One round trip: its midpoint on our clock, the autopilot's clock minus ours then, its length.
@@ -115,7 +113,7 @@ class TimeSync:
         self.wall_ns = wall_ns
         self.autopilot = AutopilotClock()
         self._pending: collections.OrderedDict[int, None] = collections.OrderedDict()
-        self._samples: collections.deque[tuple[int, int]] = collections.deque(maxlen=16)
+        self._rtts: collections.deque[int] = collections.deque(maxlen=16)  # ns, ours
         self.answered = 0
         self.answered_since_reset = 0
         self.unanswered = 0
@@ -142,10 +140,8 @@ class TimeSync:
     def autopilot_us(self, t_wall_ns: int) -> int | None:
         """A time on this host's wall clock (a pose's, ns) on the autopilot's clock, µs: how vision is
         stamped.  None before :attr:`locked` (PX4 then stamps on arrival: it has had no answer)."""
-        if not self.locked:
-            return None
-        t = t_wall_ns + (self.clock_ns() - self.wall_ns())
-        return (t + self.autopilot.offset_at(t)) // 1000
+        ns = self.autopilot_ns(t_wall_ns + (self.clock_ns() - self.wall_ns()))
+        return None if ns is None else ns // 1000
 
     @property
     def autopilot_converged(self) -> bool:
@@ -162,17 +158,17 @@ class TimeSync:
         were measured (since the gateway started or the autopilot rebooted); then whether at least half of
         the last 16 were under :data:`PX4_MAX_RTT_S` (PX4 drops the others: over a link slower than that,
         it stamps vision on arrival for good)."""
-        if len(self._samples) < MIN_ROUND_TRIPS:
+        if len(self._rtts) < MIN_ROUND_TRIPS:
             return None
-        fast = sum(1 for rtt, _ in self._samples if rtt < PX4_MAX_RTT_S * 1e9)
-        return 2 * fast >= len(self._samples)
+        fast = sum(1 for rtt in self._rtts if rtt < PX4_MAX_RTT_S * 1e9)
+        return 2 * fast >= len(self._rtts)
 
     @property
     def rtt_median_s(self) -> float | None:
         """The median of the last 16 round trips (s); None before any."""
-        if not self._samples:
+        if not self._rtts:
             return None
-        return statistics.median(rtt for rtt, _ in self._samples) * 1e-9
+        return statistics.median(self._rtts) * 1e-9
 
     @property
     def stamps(self) -> str:
@@ -213,6 +209,7 @@ class TimeSync:
                 self.answered_since_reset += 1
                 if self.rtt_s is None or self.rtt_s < PX4_MAX_RTT_S:
                     self.accepted_since_reset += 1
+                # tc1 0 would read as a request: a clock estimated just after PX4's boot may be there.
                 self.link.send(self.link.mav.timesync_encode(max(1, tc1), msg.ts1))
             self.request()
             return
@@ -223,16 +220,15 @@ class TimeSync:
         rtt = t_now - msg.ts1
         if rtt < 0:
             return
-        if self._samples:  # RFC 3550's interarrival jitter, over round trips: J += (|D| - J) / 16
-            change = abs(rtt - self._samples[-1][0]) * 1e-9
+        if self._rtts:  # RFC 3550's interarrival jitter, over round trips: J += (|D| - J) / 16
+            change = abs(rtt - self._rtts[-1]) * 1e-9
             self.jitter_s = change if self.jitter_s is None else self.jitter_s + (change - self.jitter_s) / 16
         t_mid = (msg.ts1 + t_now) // 2
-        offset = msg.tc1 - t_mid
-        self._samples.append((rtt, offset))
-        self.autopilot.add(t_mid, offset, rtt)
+        self._rtts.append(rtt)
+        self.autopilot.add(t_mid, msg.tc1 - t_mid, rtt)
         self.measured += 1
         self.rtt_s = rtt * 1e-9
-        self.rtt_min_s = min(self._samples)[0] * 1e-9
+        self.rtt_min_s = min(self._rtts) * 1e-9
         self.offset_s = self.autopilot.offset_at(t_now) * 1e-9
 
     def request(self) -> None:
@@ -245,7 +241,7 @@ class TimeSync:
 
     def reset(self) -> None:
         """Forget the measurements (the autopilot rebooted: its clock and its TIMESYNC filter restarted)."""
-        self._samples.clear()
+        self._rtts.clear()
         self.autopilot.clear()
         self.offset_s = None
         self.jitter_s = None

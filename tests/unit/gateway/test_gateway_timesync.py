@@ -1,9 +1,9 @@
 """The gateway's TIMESYNC answers as PX4 v1.16 sees them: frames built and read byte by byte on a real UDP
-socket, and PX4's own filter (``src/lib/timesync/Timesync.cpp``, ``Timesync.hpp``) run on the answers."""
+socket, and PX4's own filter (``src/lib/timesync/Timesync.cpp``, as :class:`~arena_common.sim.time.TimesyncFilter`
+runs it) on the answers."""
 
 from __future__ import annotations
 
-import math
 import socket
 import struct
 import time
@@ -15,8 +15,9 @@ from pymavlink.generator.mavcrc import x25crc
 
 from arena_common.gateway.evdelay import WATCH_PERIOD as EV_WATCH_PERIOD
 from arena_common.gateway.evdelay import tolerance_ms
-from arena_common.gateway.timesync import PX4_CONVERGENCE_WINDOW, PX4_MAX_RTT_S, TimeSync
+from arena_common.gateway.timesync import PX4_CONVERGENCE_WINDOW, TimeSync
 from arena_common.mavlink.link import MSG, MavlinkLink
+from arena_common.sim.time import TimesyncFilter
 from tests.conftest import free_port
 from tests.helpers import wait_for
 from tests.unit.gateway.test_gateway import Rig, rig_factory  # noqa: F401  (the make_rig fixture)
@@ -50,55 +51,6 @@ def read_timesync(data: bytes) -> tuple[int, int, int, int]:
     assert struct.unpack("<H", data[10 + length : 12 + length])[0] == crc.crc
     tc1, ts1, target_system, target_component = struct.unpack("<qqBB", payload.ljust(18, b"\0"))
     return tc1, ts1, target_system, target_component
-
-
-@dataclass
-class Px4Timesync:
-    """PX4 v1.16's ``Timesync::update`` and ``sync_stamp`` (src/lib/timesync/Timesync.cpp), in µs."""
-
-    sequence: int = 0
-    offset: float = 0.0
-    skew: float = 0.0
-    accepted: int = 0
-    rejected: int = 0
-    high_deviation: int = 0
-    resets: int = 0
-
-    def update(self, now_us: int, tc1_ns: int, ts1_ns: int) -> None:
-        offset_us = (ts1_ns // 1000 + now_us - (tc1_ns // 1000) * 2) // 2
-        rtt_us = now_us - ts1_ns // 1000
-        if rtt_us >= PX4_MAX_RTT_S * 1e6:
-            self.rejected += 1
-            return
-        if self.converged and abs(self.offset - offset_us) > 100_000:
-            self.rejected += 1
-            self.high_deviation += 1
-            if self.high_deviation > 5:  # "time jump detected. Resetting time synchroniser."
-                self.resets += 1
-                self.sequence, self.offset, self.skew, self.high_deviation = 0, 0.0, 0.0, 0
-            return
-        self.high_deviation = 0
-        if self.converged:
-            alpha = beta = 0.003
-        else:
-            p = 1.0 - math.exp(0.5 * (1.0 - 1.0 / (1.0 - self.sequence / PX4_CONVERGENCE_WINDOW)))
-            alpha = beta = p * 0.003 + (1.0 - p) * 0.05
-        previous = self.offset
-        if self.sequence == 0:
-            self.offset = offset_us
-        else:
-            self.offset = alpha * offset_us + (1.0 - alpha) * (self.offset + self.skew)
-            self.skew = beta * (self.offset - previous) + (1.0 - beta) * self.skew
-        self.sequence += 1
-        self.accepted += 1
-
-    @property
-    def converged(self) -> bool:
-        return self.sequence >= PX4_CONVERGENCE_WINDOW
-
-    def sync_stamp(self, usec: int, now_us: int) -> int:
-        """A remote time (µs) on PX4's clock: converted once converged, else the arrival time."""
-        return int(usec + self.offset) if self.converged else now_us
 
 
 @pytest.fixture
@@ -213,14 +165,14 @@ class SitlClock:
 
 
 def fly_px4_filter(
-    sock: socket.socket, ts: TimeSync, clock: SitlClock, px4: Px4Timesync, requests: int, seq: int = 0
+    sock: socket.socket, ts: TimeSync, clock: SitlClock, px4: TimesyncFilter, requests: int, seq: int = 0
 ) -> int:
     """``requests`` requests of PX4 on ``clock``, answers run through its filter ``px4``; the next seq."""
     for _ in range(requests):
         got = ask(sock, seq, clock)
         seq += 1
         if got is not None:
-            px4.update(got[2] // 1000, got[1], got[0])
+            px4.update(got[2] // 1000, got[1] // 1000, got[0] // 1000)
     return seq
 
 
@@ -234,14 +186,18 @@ def test_px4_filter_converges_on_the_answers_and_maps_our_stamps(
     link, sock = px4_socket
     ts = TimeSync(link)
     pump = Pump(link, {MSG["TIMESYNC"]: ts.on_timesync})
-    px4, clock = Px4Timesync(), SitlClock(rate=0.98)
+    px4, clock = TimesyncFilter(), SitlClock(rate=0.98)  # PX4's own filter, as the simulation runs it
     try:
         seq = 0
         while not px4.converged:
             assert seq < 3 * PX4_CONVERGENCE_WINDOW, px4  # a loaded machine may see a slow round trip
             seq = fly_px4_filter(sock, ts, clock, px4, 1, seq)
             assert ts.autopilot_converged is (ts.accepted_since_reset >= PX4_CONVERGENCE_WINDOW)
-        assert px4.accepted == PX4_CONVERGENCE_WINDOW and ts.fields()["autopilot_converged"] is True
+        assert (
+            px4.sequence == PX4_CONVERGENCE_WINDOW
+            and px4.resets == 0
+            and ts.fields()["autopilot_converged"] is True
+        )
         unanswered = ts.unanswered
         # A test's round trips come every few ms, not every 100 ms: the wander is as much larger.
         for wander in (
