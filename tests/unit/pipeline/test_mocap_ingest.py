@@ -23,6 +23,7 @@ from arena_common.bus.session import Bus, Subscription
 from arena_common.core import config as config_mod
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
+from arena_common.core.errors import WaitTimeout
 from arena_common.mocap.natnet import MessageId, ModelDefs, RigidBody
 from arena_common.pipeline.ingest import body_key_name, encode_pose
 from services import mocap_ingest
@@ -430,11 +431,18 @@ def test_end_to_end_with_the_motive_emulator(
     def good(vehicle: str) -> list[wire.MocapPose]:
         return [p for p in seen.get(keys.mocap(vehicle), []) if p.ok and p.tsrc == "echo"]
 
-    wait_for(
-        lambda: latest(sub, seen) and len(good("d1")) >= 10 and len(good("d2")) >= 10,
-        timeout=20,
-        what=f"echo-timed, tracked poses of d1 and d2 (got {sorted(seen)})",
-    )
+    def received() -> str:  # what had arrived when the wait gave up
+        return ", ".join(
+            f"{key}: {len(ps)} ({sum(x.ok for x in ps)} tracked, times {sorted({x.tsrc for x in ps})})"
+            for key, ps in sorted(seen.items())
+        )
+
+    try:
+        wait_for(lambda: latest(sub, seen) and len(good("d1")) >= 10 and len(good("d2")) >= 10, timeout=20)
+    except WaitTimeout as exc:
+        raise AssertionError(
+            f"no 10 echo-timed, tracked poses of d1 and d2; received: {received() or 'none'}"
+        ) from exc
     for vehicle, body_id in (("d1", 1), ("d2", 2)):
         poses = good(vehicle)
         pose = poses[-1]
