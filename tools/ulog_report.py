@@ -19,8 +19,8 @@
 - **output predictor**: ``estimator_status.output_tracking_error[2]`` (position; [0] is angular, [1]
   velocity) p50 / p95;
 - **offboard**: over the longest Offboard stretch, the truth's largest distance from the position
-  setpoint PX4 was given at the same time (``trajectory_setpoint``), and over its last 2 s the truth's
-  distance from the final setpoint, p50 / max;
+  setpoint PX4 was given at the same time (``trajectory_setpoint``) and the rms of that distance, and over
+  its last 2 s the truth's distance from the final setpoint, p50 / max;
 - **timesync**: when PX4 started converting vision stamps with its TIMESYNC estimate (the first sample whose
   ``timestamp_sample`` is more than 1 ms before its arrival; before that it uses arrival time).
 
@@ -96,6 +96,7 @@ class Report:
     offboard_max_m: float | None = None
     offboard_end_p50_m: float | None = None
     offboard_end_max_m: float | None = None
+    offboard_rms_m: float | None = None
     vision_vs_truth_synced: Lag | None = None
     timesync_error_ms: tuple[float, float] | None = None  # p50, largest magnitude
 
@@ -224,20 +225,22 @@ def offboard_tracking(
     truth: np.ndarray,
     window: tuple[float, float],
     end_s: float = 2.0,
-) -> tuple[float, float, float] | None:
-    """Truth vs the position setpoint in ``window`` (µs): the largest distance at the same time, and over the
-    last ``end_s`` the distance from the final setpoint, p50 and max.  Setpoints without a position left out."""
+) -> tuple[float, float, float, float] | None:
+    """Truth vs the position setpoint in ``window`` (µs): the largest distance at the same time, over the
+    last ``end_s`` the distance from the final setpoint (p50 and max), and the rms distance at the same time.
+    Setpoints without a position left out."""
     keep = (t_sp >= window[0]) & (t_sp <= window[1]) & np.all(np.isfinite(setpoint), axis=1)
     if keep.sum() < 10:
         return None
     ts, sp = t_sp[keep], setpoint[keep]
     at = np.stack([np.interp(ts, t_truth, truth[:, k]) for k in range(3)], axis=1)
-    deviation = float(np.linalg.norm(at - sp, axis=1).max())
+    distance = np.linalg.norm(at - sp, axis=1)
+    deviation, rms = float(distance.max()), float(np.sqrt(np.mean(distance**2)))
     end = (t_truth >= window[1] - end_s * 1e6) & (t_truth <= window[1])
     if end.sum() < 3:
         return None
     held = np.linalg.norm(truth[end] - sp[-1], axis=1)
-    return deviation, float(np.median(held)), float(held.max())
+    return deviation, float(np.median(held)), float(held.max()), rms
 
 
 def analyse(topics: Mapping[str, Arrays], hover: tuple[float, float] | None = None) -> Report:
@@ -358,6 +361,7 @@ def analyse(topics: Mapping[str, Arrays], hover: tuple[float, float] | None = No
         offboard_max_m=off[0] if off else None,
         offboard_end_p50_m=off[1] if off else None,
         offboard_end_max_m=off[2] if off else None,
+        offboard_rms_m=off[3] if off else None,
         vision_vs_truth_synced=vision_synced,
         timesync_error_ms=ts_error,
     )
@@ -424,7 +428,8 @@ def render(report: Report) -> str:
     if r.offboard_s is not None and r.offboard_max_m is not None:
         lines.append(
             f"offboard {r.offboard_s[0]:.1f}-{r.offboard_s[1]:.1f} s: truth at most "
-            f"{r.offboard_max_m * 100:.1f} cm from the setpoint; last 2 s from the final one p50 "
+            f"{r.offboard_max_m * 100:.1f} cm from the setpoint (rms {(r.offboard_rms_m or 0) * 100:.1f} cm); "
+            f"last 2 s from the final one p50 "
             f"{(r.offboard_end_p50_m or 0) * 100:.1f} cm, max {(r.offboard_end_max_m or 0) * 100:.1f} cm"
         )
     ts = "never (arrival times)" if r.timesync_from_s is None else f"from {r.timesync_from_s:.1f} s"

@@ -100,6 +100,8 @@ def test_analyse_finds_hover_lags_and_offboard_errors() -> None:
     assert report.offboard_s == pytest.approx((40.0, 50.0))
     assert report.offboard_end_p50_m == pytest.approx(0.05, abs=0.002)  # 0.95 m of the 1 m
     assert 0.049 < (report.offboard_max_m or 0) < 0.13
+    # 5 % short along the 5 s ramp, then 5 cm for 5 s: sqrt((0.05² · 5/3 + 0.05² · 5) / 10)
+    assert report.offboard_rms_m == pytest.approx(0.05 * (2 / 3) ** 0.5, abs=0.002)
     assert "200 ms behind" in render(report)
     # A given hover window is used as it is.
     assert analyse(_flight(), hover=(30.0, 31.0)).hover_s == pytest.approx((30.0, 31.0))
