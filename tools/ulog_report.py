@@ -329,17 +329,7 @@ def analyse(topics: Mapping[str, Arrays], hover: tuple[float, float] | None = No
         if len(te):
             te50, te95 = float(np.median(te)), float(np.percentile(te, 95))
 
-    off_window = off = None
-    sp_topic = topics.get("trajectory_setpoint")
-    if sp_topic is not None and len(sp_topic["timestamp"]) > 10:
-        runs = stretches(t_st, np.asarray(st["nav_state"]) == NAV_OFFBOARD, float(t_gt[-1]))
-        if runs:
-            off_window = max(runs, key=lambda r: r[1] - r[0])
-            sp = xyz(sp_topic, ("position[0]", "position[1]", "position[2]"))
-            off = offboard_tracking(
-                np.asarray(sp_topic["timestamp"], float), sp, t_gt, truth + offset, off_window
-            )
-
+    offboard = offboard_figures(topics, t_st, np.asarray(st["nav_state"]), t_gt, truth + offset)
     return Report(
         hover_s=(window[0] * 1e-6, window[1] * 1e-6),
         hover_p50_m=h50,
@@ -357,14 +347,35 @@ def analyse(topics: Mapping[str, Arrays], hover: tuple[float, float] | None = No
         tracking_error_p50_m=te50,
         tracking_error_p95_m=te95,
         timesync_from_s=ts_from,
-        offboard_s=(off_window[0] * 1e-6, off_window[1] * 1e-6) if off_window and off else None,
-        offboard_max_m=off[0] if off else None,
-        offboard_end_p50_m=off[1] if off else None,
-        offboard_end_max_m=off[2] if off else None,
-        offboard_rms_m=off[3] if off else None,
         vision_vs_truth_synced=vision_synced,
         timesync_error_ms=ts_error,
+        **offboard,
     )
+
+
+def offboard_figures(
+    topics: Mapping[str, Arrays], t_st: np.ndarray, nav_state: np.ndarray, t_gt: np.ndarray, truth: np.ndarray
+) -> dict[str, Any]:
+    """The :class:`Report`'s ``offboard_*`` fields over the longest Offboard stretch (none without one);
+    ``truth`` in the setpoints' frame."""
+    sp_topic = topics.get("trajectory_setpoint")
+    if sp_topic is None or len(sp_topic["timestamp"]) <= 10:
+        return {}
+    runs = stretches(t_st, nav_state == NAV_OFFBOARD, float(t_gt[-1]))
+    if not runs:
+        return {}
+    window = max(runs, key=lambda r: r[1] - r[0])
+    sp = xyz(sp_topic, ("position[0]", "position[1]", "position[2]"))
+    off = offboard_tracking(np.asarray(sp_topic["timestamp"], float), sp, t_gt, truth, window)
+    if off is None:
+        return {}
+    return {
+        "offboard_s": (window[0] * 1e-6, window[1] * 1e-6),
+        "offboard_max_m": off[0],
+        "offboard_end_p50_m": off[1],
+        "offboard_end_max_m": off[2],
+        "offboard_rms_m": off[3],
+    }
 
 
 def read_ulog(path: str | Path) -> dict[str, dict[str, np.ndarray]]:

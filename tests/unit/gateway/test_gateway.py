@@ -74,6 +74,7 @@ class Rig:
             )
         self.loop = AutopilotLoop(self.aps.values()).start() if self.aps else None
         self.feeding = dict.fromkeys(self.aps, True)
+        self.feed_rounds = 0  # the feeder's rounds done: one begun after a change of ``feeding`` saw it
         self.rc = dict.fromkeys(self.aps, 0)
         self.states: dict[str, wire.State] = {}
         self.state_count: dict[str, int] = dict.fromkeys(self.aps, 0)
@@ -114,6 +115,14 @@ class Rig:
                     self._vision[name].put(pose)
                     self.fleet.offer(name, pose)
             self.fleet.tick(time.monotonic_ns())
+            self.feed_rounds += 1
+
+    def stop_feed(self, name: str) -> None:
+        """Stop feeding ``name``'s vision; return once the feeder has put its last pose (a round begun after
+        the change has ended: a feeder stalled between its check and its put, on a busy machine, is past)."""
+        self.feeding[name] = False
+        begun = self.feed_rounds + 1
+        wait_for(lambda: self.feed_rounds > begun, 10.0, 0.005, "the feeder to see the stop")
 
     def _collect(self) -> None:
         while not self._stop.is_set():

@@ -27,10 +27,17 @@ def refusal(rig: Rig) -> str:
 
 
 def stop_feeding(rig: Rig) -> Gateway:
-    """Stop the rig's vision feeder; return once its last pose is long gone (nothing of it in flight)."""
+    """Stop the rig's vision feeder; return once its last pose is long gone (nothing of it in flight):
+    0.5 s after the feeder put it, and 0.5 s after the gateway last saw a pose."""
     gw = rig.gateways["d1"]
-    rig.feeding["d1"] = False
-    wait_for(lambda: time.monotonic() - gw.vision.last_arrival_mono > 0.5, 10.0, 0.02, "the feed silent")
+    rig.stop_feed("d1")
+    stopped = time.monotonic()
+    wait_for(
+        lambda: min(time.monotonic() - gw.vision.last_arrival_mono, time.monotonic() - stopped) > 0.5,
+        10.0,
+        0.02,
+        "the feed silent",
+    )
     return gw
 
 
