@@ -205,7 +205,14 @@ class TwistBursts:
         while not (v.mode == "AUTO.LOITER" and self.started(v.name) > before):
             assert time.monotonic() < deadline, f"{v.name}: no Hold after the Twists stopped ({v.mode})"
             time.sleep(0.05)
-        modes = [e.data.get("mode") for e in v.events() if e.t >= t0 and e.kind == "mode"]
-        assert modes in (["AUTO.LOITER"], ["OFFBOARD", "AUTO.LOITER"]), modes  # engaged once, ended once
+
+        def modes() -> list[Any]:
+            return [e.data.get("mode") for e in v.events() if e.t >= t0 and e.kind == "mode"]
+
+        # The state (v.mode) and the events come on two keys, in either order: the Hold's event may follow.
+        deadline = time.monotonic() + 10.0
+        while modes()[-1:] != ["AUTO.LOITER"] and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert modes() in (["AUTO.LOITER"], ["OFFBOARD", "AUTO.LOITER"]), modes()  # engaged once, ended once
         assert self.started(v.name) == before + 1, f"{v.name}: the burst started more than one stream"
         assert not [e.text for e in v.events() if e.t >= t0 and e.kind == "failsafe"]
