@@ -34,8 +34,7 @@ HANDOVERS = int(os.environ.get("ARENA_HANDOVERS", "200"))  # in all, over the ve
 
 @pytest.fixture
 def rig(make_rig: Callable[..., Rig]) -> Iterator[Rig]:
-    # Four abreast 1.2 m apart (within the arena's ±3.2 m north): 50 hand-overs each, ~1.1 cores.
-    yield make_rig(n_vehicles=4, speed=1.0, ideal=False, spacing=1.2)
+    yield make_rig(n_vehicles=3, speed=1.0, ideal=False, spacing=1.5)
 
 
 @pytest.fixture
