@@ -38,7 +38,7 @@ import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -353,9 +353,19 @@ def analyse(topics: Mapping[str, Arrays], hover: tuple[float, float] | None = No
     )
 
 
+class OffboardFigures(TypedDict, total=False):
+    """:class:`Report`'s ``offboard_*`` fields, all or none (typed, for ``Report(**figures)``)."""
+
+    offboard_s: tuple[float, float]
+    offboard_max_m: float
+    offboard_end_p50_m: float
+    offboard_end_max_m: float
+    offboard_rms_m: float
+
+
 def offboard_figures(
     topics: Mapping[str, Arrays], t_st: np.ndarray, nav_state: np.ndarray, t_gt: np.ndarray, truth: np.ndarray
-) -> dict[str, Any]:
+) -> OffboardFigures:
     """The :class:`Report`'s ``offboard_*`` fields over the longest Offboard stretch (none without one);
     ``truth`` in the setpoints' frame."""
     sp_topic = topics.get("trajectory_setpoint")

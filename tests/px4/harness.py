@@ -363,24 +363,24 @@ def wait_timesync_settled(
     and its estimate may drop out for a moment then: an arm in that moment is denied ("Resolve system
     health failures first", seen once in a CI run), so a flight starts once PX4 is steady again.
     """
-    if not fast:
-        _wait_timesync_settled(px4, timeout, hold)
-        return
-    timesync_rate(px4, TIMESYNC_FAST_HZ)
+    if fast:
+        timesync_rate(px4, TIMESYNC_FAST_HZ)
     try:
         _wait_timesync_settled(px4, timeout, hold)
     finally:
-        timesync_rate(px4, TIMESYNC_HZ)
+        if fast:
+            timesync_rate(px4, TIMESYNC_HZ)
 
 
 def _wait_timesync_settled(px4: Px4Sitl, timeout: float, hold: float) -> None:
     # Three readings in a row: before convergence PX4 stamps on arrival, yet one sample published more than
     # 1 ms after its arrival (a busy machine) reads as converged — seen once: a flight flown before it.
-    running = [0]
+    in_a_row = 0
 
     def converged() -> bool:
-        running[0] = running[0] + 1 if timesync_converged(px4) else 0
-        return running[0] >= 3
+        nonlocal in_a_row
+        in_a_row = in_a_row + 1 if timesync_converged(px4) else 0
+        return in_a_row >= 3
 
     wait_for(converged, timeout, 1.0, "PX4's TIMESYNC to converge")
     since: list[float] = []
