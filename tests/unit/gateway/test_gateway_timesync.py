@@ -193,11 +193,14 @@ def test_px4_filter_converges_on_the_answers_and_maps_our_stamps(
             assert seq < 3 * PX4_CONVERGENCE_WINDOW, px4  # a loaded machine may see a slow round trip
             seq = fly_px4_filter(sock, ts, clock, px4, 1, seq)
             assert ts.autopilot_converged is (ts.accepted_since_reset >= PX4_CONVERGENCE_WINDOW)
-        assert (
-            px4.sequence == PX4_CONVERGENCE_WINDOW
-            and px4.resets == 0
-            and ts.fields()["autopilot_converged"] is True
-        )
+        assert px4.sequence == PX4_CONVERGENCE_WINDOW and px4.resets == 0, px4
+        # The gateway counts PX4's acceptances by its own round trips, which a busy machine may see slower
+        # than PX4 saw its own: it says "converged" within a few more requests (a CI run: not at once).
+        more = 0
+        while ts.fields()["autopilot_converged"] is not True:
+            assert more < 100, (ts.accepted_since_reset, ts.answered_since_reset)
+            seq = fly_px4_filter(sock, ts, clock, px4, 1, seq)
+            more += 1
         unanswered = ts.unanswered
         # A test's round trips come every few ms, not every 100 ms: the wander is as much larger.
         for wander in (
