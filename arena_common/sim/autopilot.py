@@ -339,10 +339,14 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
         t = (now_ns - self._boot_ns) * 1e-9
         sim = self.sim
         dt = sim.dt
-        if t - sim.time > self.MAX_CATCH_UP_S:
+        skipping = t - sim.time > self.MAX_CATCH_UP_S
+        if skipping:
             skipped = (int((t - sim.time) / dt) - 1) * dt  # whole ticks: the physics keeps its time grid
             self.skipped_time_s += skipped
             sim.time += skipped
+            # What reached the vehicle while its simulation could not run is read before anything judges
+            # it: a real vehicle would have read it as it came, and must not take the stall for lost vision.
+            self._read_input(sim.time)
         on_tick = self.on_tick
         while sim.time + dt <= t + 1e-9:
             try:
@@ -357,6 +361,8 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
                 on_tick(self._update_true_pose())
         if on_tick is None:
             self._update_true_pose()
+        if not skipping and (self.clock.now_ns() - self._boot_ns) * 1e-9 - sim.time > self.MAX_CATCH_UP_S:
+            return 0.0  # held up during the physics: the next step skips that time, then reads
         self._read_input(sim.time)
         self._mission_tick(sim.time)
         self._send_due(sim.time)

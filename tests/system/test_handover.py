@@ -104,8 +104,11 @@ def test_hand_overs_with_setpoints_delayed_and_reordered(rig: Rig, twists: Twist
             t.join(HANDOVERS * 10.0)
         done.set()
         watcher.join(2.0)
-        assert not errors, errors
-        assert judge.problems == [], judge.problems
+        # On a failure, whether this process was held up: the feeder's longest gap, the time the
+        # simulation skipped (it could not run), per vehicle.
+        held_up = {"feed_gap_s": rig.feed_gap_s, **{n: ap.skipped_time_s for n, ap in rig.aps.items()}}
+        assert not errors, (errors, held_up)
+        assert judge.problems == [], (judge.problems, held_up)
         assert closest[0] >= rig.cfg.arena.min_separation, closest  # no two vehicles nearer than allowed
         assert judge.total >= HANDOVERS and set(judge.count) == {k for k, _, _ in flows}, judge.count
         # The whole flight: no failsafe, no landing but the one asked for; the bus did delay.

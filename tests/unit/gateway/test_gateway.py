@@ -75,6 +75,7 @@ class Rig:
         self.loop = AutopilotLoop(self.aps.values()).start() if self.aps else None
         self.feeding = dict.fromkeys(self.aps, True)
         self.feed_rounds = 0  # the feeder's rounds done: one begun after a change of ``feeding`` saw it
+        self.feed_gap_s = 0.0  # the longest time between two of the feeder's rounds (50 Hz asked)
         self.rc = dict.fromkeys(self.aps, 0)
         self.states: dict[str, wire.State] = {}
         self.state_count: dict[str, int] = dict.fromkeys(self.aps, 0)
@@ -98,7 +99,10 @@ class Rig:
 
     # -- background ------------------------------------------------------------------------------
     def _feed(self) -> None:
+        last = time.monotonic()
         while not self._stop.wait(0.02):
+            now = time.monotonic()
+            self.feed_gap_s, last = max(self.feed_gap_s, now - last), now
             for name, ap in self.aps.items():
                 if self.feeding[name]:
                     tp = ap.true_pose()

@@ -11,6 +11,7 @@ import math
 import os
 import select
 import socket
+import threading
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -489,6 +490,30 @@ def test_position_loss_failsafe_descends(make_vehicle: Callable[..., tuple[SimAu
     gcs.wait_for(lambda: not gcs.armed, 4.0, "disarmed")
     # PX4 keeps sending LOCAL_POSITION_NED while the position is invalid.
     assert len([m for m in gcs.messages["LOCAL_POSITION_NED"] if m.time_boot_ms * 1e-3 > failsafe_at]) > 30
+
+
+def test_a_held_up_simulation_does_not_take_the_stall_for_lost_vision(
+    make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]],
+) -> None:
+    """A busy machine holds the simulation's thread up for a second while mocap and setpoints keep coming,
+    as they would to a real vehicle: the simulation skips the time it could not run and reads what came
+    before judging anything, so no position-loss or offboard-loss failsafe, and the flight goes on."""
+    ap, gcs = make_vehicle()
+    gcs.fly_offboard_to(1.0)
+    held = threading.Event()
+
+    def hold_up(_pose: object) -> None:
+        if not held.is_set():
+            held.set()
+            time.sleep(1.0)  # real seconds: more than EKF2_NOAID_TOUT's 0.6 s and COM_OF_LOSS_T
+
+    skipped = ap.skipped_time_s
+    ap.on_tick = hold_up
+    gcs.wait_for(held.is_set, 2.0, "the simulation held up")
+    gcs.run_for(gcs.clock.speed * 1.0 + 2.0)  # the stall, in simulated seconds, then 2 s of flight
+    assert ap.skipped_time_s - skipped >= 0.6  # the stall was skipped, not simulated
+    assert ap.failsafe is None and not gcs.texts_with("Failsafe"), gcs.texts_with("")
+    assert gcs.mode == "OFFBOARD" and gcs.armed and abs(gcs.height - 1.0) < 0.1
 
 
 def test_low_battery_warns_then_lands(make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]]) -> None:
