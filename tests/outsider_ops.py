@@ -66,6 +66,7 @@ def main() -> None:
                 snap[n] = None if s is None else {
                     "p": s.p, "z": s.p[2] if s.p else None, "armed": s.armed, "mode": s.mode, "fused": s.vis_fused,
                     "vis_rate": s.vis_rate, "link": s.link, "age": v.state_age,
+                    "events": [f"{e.kind}: {e.text}" for e in v.events() if e.sev <= 4 or e.kind == "mode"][-8:],
                 }  # fmt: skip
             report(t=time.time(), spoofed=spoofed[-20:], n_spoofed=len(spoofed), rejected=rejected, **snap)
             time.sleep(0.2)

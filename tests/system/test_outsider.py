@@ -313,7 +313,10 @@ def test_lab_steps_then_the_outsider_cannot_command_spoof_or_divert(
     assert report["n_spoofed"] == 0, report["spoofed"]
     for other in ("c2", "c3"):
         assert report[other]["armed"] is False and report[other]["mode"] != "SPOOFED", report
-    assert report["c1"]["armed"] and report["c1"]["z"] < -0.7 and report["c1"]["fused"], report
+    c1 = report["c1"]
+    assert c1["armed"] and c1["z"] < -0.7 and c1["fused"], json.dumps(
+        {"c1": c1, "rejected": report["rejected"]}
+    )
     assert all(report[v]["link"] for v in SYSIDS), report
     north, east, _ = report["c1"]["p"]
     assert abs(north + 1.0) < 0.25 and abs(east) < 0.25, f"c1 moved: {report['c1']}"
