@@ -361,8 +361,8 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
                 on_tick(self._update_true_pose())
         if on_tick is None:
             self._update_true_pose()
-        if not skipping and (self.clock.now_ns() - self._boot_ns) * 1e-9 - sim.time > self.MAX_CATCH_UP_S:
-            return 0.0  # held up during the physics: the next step skips that time, then reads
+        if not skipping and (self.clock.now_ns() - now_ns) * 1e-9 > self.MAX_CATCH_UP_S:
+            return 0.0  # held up during this step: the next one skips that time, then reads
         self._read_input(sim.time)
         self._mission_tick(sim.time)
         self._send_due(sim.time)
