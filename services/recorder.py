@@ -12,7 +12,6 @@ Recording starts at once into ``rec_<host>_<time>.mcap``.
 
 from __future__ import annotations
 
-import logging
 import threading
 from pathlib import Path
 from typing import Annotated, Any
@@ -26,8 +25,7 @@ from arena_common.core.config import ArenaConfig
 from arena_common.core.services import by_module
 from arena_common.recording.mcap import Recorder, Sample
 from arena_common.runtime.command import Shared, service_command
-from arena_common.runtime.process import lead_own_session
-from arena_common.runtime.service import running, yield_cpu
+from arena_common.runtime.service import running
 
 SERVICE = by_module("services.recorder").name  # its one name: arena_common/core/services.py
 
@@ -116,8 +114,6 @@ def cli(
     name: Annotated[str | None, typer.Option("--name", help="Name of the first file (default: rec).")] = None,
 ) -> None:
     """Record the bus into MCAP files (Foxglove, PlotJuggler, `arena rec info`)."""
-    lead_own_session()
-    yield_cpu(logging.getLogger("arena.recorder"))
     main(shared.config, shared.bus, host=shared.host, directory=directory, name=name)
 
 

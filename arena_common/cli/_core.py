@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import threading
 import time
@@ -19,8 +20,9 @@ from arena_common.cli._globals import config as global_config
 from arena_common.cli._globals import current as global_options
 from arena_common.core import keys, wire
 from arena_common.core.errors import ConfigError
+from arena_common.core.services import ROUTER_CPU
 from arena_common.runtime.options import HostOpt, read_config
-from arena_common.runtime.service import host_name, running, setup_logging
+from arena_common.runtime.service import host_name, running, setup_logging, take_cpu_share
 
 config_app = typer.Typer(help="Check arena config files.", no_args_is_help=True)
 
@@ -124,6 +126,7 @@ def router(
     """Run a Zenoh router (a Python session in router mode; no separate binary needed)."""
     cfg = global_config(required=False)
     setup_logging()
+    take_cpu_share(ROUTER_CPU, logging.getLogger("arena.router"))
     opts = global_bus("router", list(global_options().listen) or list(cfg.zenoh.router_listen if cfg else ()))
     extra = security.router_settings(cfg, cfg.security, host_name(host)) if cfg else {}
     opts = replace(opts, mode="router", connect=(), settings={"connect/endpoints": [], **extra})

@@ -26,12 +26,12 @@ from arena_common.cli._globals import config as global_config
 from arena_common.core import keys
 from arena_common.core.config import ArenaConfig, HostSpec
 from arena_common.core.errors import ArenaError, BusError, ConfigError
-from arena_common.core.services import ServiceInfo, missing_extra, started_by
+from arena_common.core.services import ROUTER_CPU, CpuShare, ServiceInfo, missing_extra, started_by
 from arena_common.runtime.options import (
     HostOpt,
 )
 from arena_common.runtime.ports import taken_ports
-from arena_common.runtime.service import Service, running
+from arena_common.runtime.service import BACKGROUND_NICE, VISION_NICE, Service, running
 from arena_common.runtime.supervisor import SUPERVISOR_SERVICE, Supervisor, host_options, plan, supervise
 
 REPO = Path(__file__).resolve().parents[2]
@@ -90,11 +90,26 @@ def missing_extras(host: HostSpec) -> list[tuple[str, str]]:
     return [(name, why) for name, why in found if why]
 
 
+#: A unit's CPU share by the table's :data:`~arena_common.core.services.CpuShare`: systemd sets the niceness
+#: (as ``runtime.service.take_cpu_share`` asks for under ``arena up``) and weighs the unit's own cgroup, which
+#: is what shares the CPU between services under systemd.
+CPU_DIRECTIVES: dict[CpuShare, str] = {
+    "vision": f"# The vehicles' vision passes through it: it goes first.\nNice={VISION_NICE}\nCPUWeight=300",
+    "normal": "# The default CPU share.",
+    "background": f"# No vehicle depends on it: it yields.\nNice={BACKGROUND_NICE}\nCPUWeight=20",
+}
+
+
 def unit_fields(service: ServiceInfo) -> dict[str, str]:
-    """What a service's unit template is filled with from the table of services: its name, module and
-    description (a vehicle's unit names its vehicle, ``%i``)."""
+    """What a service's unit template is filled with from the table of services: its name, module,
+    description (a vehicle's unit names its vehicle, ``%i``) and CPU share."""
     summary = f"{service.summary} (%i)" if service.scope == "vehicle" else service.summary
-    return {"@SUMMARY@": summary, "@MODULE@": service.module, "@NAME@": service.name}
+    return {
+        "@SUMMARY@": summary,
+        "@MODULE@": service.module,
+        "@NAME@": service.name,
+        "@CPU@": CPU_DIRECTIVES[service.cpu],
+    }
 
 
 def render_systemd(
@@ -143,7 +158,7 @@ def render_systemd(
     wants: list[str] = []
     simulated = any(v.simulated for v in cfg.vehicles.values())
     if "router" in h.services:
-        files[f"{UNIT_DIR}/{ROUTER_UNIT}"] = fill(ROUTER_UNIT)
+        files[f"{UNIT_DIR}/{ROUTER_UNIT}"] = fill(ROUTER_UNIT, {"@CPU@": CPU_DIRECTIVES[ROUTER_CPU]})
         wants.append(ROUTER_UNIT)
     for service in (s for word in h.services for s in started_by(word)):
         if service.name == "sim-vehicle" and not simulated:

@@ -23,7 +23,9 @@ from typing import Literal, get_args
 
 __all__ = [
     "EXTRAS",
+    "ROUTER_CPU",
     "SERVICES",
+    "CpuShare",
     "HostService",
     "ServiceInfo",
     "VehicleService",
@@ -39,6 +41,11 @@ HostService = Literal["router", "mocap", "transform", "recorder", "sim", "ros2"]
 VehicleService = Literal["downsampler", "gateway"]
 Scope = Literal["host", "vehicle", "px4-sitl"]
 Group = Literal["run", "sim"]
+#: How a process shares the CPU (:func:`~arena_common.runtime.service.take_cpu_share`): ``vision`` for what the
+#: vehicles' vision passes through or stands for (the mocap, the transform, the downsamplers, the gateways, the
+#: router, and the simulated world, which stands for cameras and vehicles with processors of their own) goes
+#: first; ``background`` (the recorder, the live viewer) yields; ``normal`` keeps what it was given.
+CpuShare = Literal["vision", "normal", "background"]
 SIM_PREFIX = "sim-"
 
 #: Optional extra → the modules it brings (pyproject.toml's ``[project.optional-dependencies]``).
@@ -59,6 +66,7 @@ class ServiceInfo:
     summary: str  # what it does, in one line: the command's help and the systemd unit's description
     config: HostService | VehicleService | None = None  # the config word that starts it under ``arena up``
     extra: str | None = None  # the optional extra it needs
+    cpu: CpuShare = "normal"  # how its process shares the CPU
 
     @property
     def command(self) -> str:
@@ -79,6 +87,7 @@ SERVICES: tuple[ServiceInfo, ...] = (
         "run",
         "mocap ingest: NatNet (or another source) → arena/sys/frames (and arena/<drone>/mocap)",
         config="mocap",
+        cpu="vision",
     ),
     ServiceInfo(
         "transform",
@@ -87,6 +96,7 @@ SERVICES: tuple[ServiceInfo, ...] = (
         "run",
         "frame transform: arena/sys/frames → arena/<drone>/pose (NED/FRD)",
         config="transform",
+        cpu="vision",
     ),
     ServiceInfo(
         "downsampler",
@@ -95,6 +105,7 @@ SERVICES: tuple[ServiceInfo, ...] = (
         "run",
         "downsampler: arena/<drone>/pose → arena/<drone>/vision",
         config="downsampler",
+        cpu="vision",
     ),
     ServiceInfo(
         "gateway",
@@ -103,6 +114,7 @@ SERVICES: tuple[ServiceInfo, ...] = (
         "run",
         "MAVLink gateway of one vehicle: the bus ↔ its PX4",
         config="gateway",
+        cpu="vision",
     ),
     ServiceInfo(
         "recorder",
@@ -111,6 +123,7 @@ SERVICES: tuple[ServiceInfo, ...] = (
         "run",
         "telemetry recorder: arena keys → MCAP files",
         config="recorder",
+        cpu="background",
     ),
     ServiceInfo(
         "ros2",
@@ -142,6 +155,7 @@ SERVICES: tuple[ServiceInfo, ...] = (
         "sim",
         "simulated PX4 vehicles speaking MAVLink 2",
         config="sim",
+        cpu="vision",
     ),
     ServiceInfo(
         "sim-motive",
@@ -150,6 +164,7 @@ SERVICES: tuple[ServiceInfo, ...] = (
         "sim",
         "Motive emulator: a NatNet server streaming the simulated vehicles",
         config="sim",
+        cpu="vision",
     ),
     ServiceInfo(
         "sim-world",
@@ -157,8 +172,12 @@ SERVICES: tuple[ServiceInfo, ...] = (
         "host",
         "sim",
         "the whole simulated world in one process: vehicles and Motive emulator",
+        cpu="vision",
     ),
 )
+
+#: The router carries every pose from the mocap to the gateways: it shares the CPU as the vision pipeline.
+ROUTER_CPU: CpuShare = "vision"
 
 _BY_NAME = {s.name: s for s in SERVICES}
 _BY_MODULE = {s.module: s for s in SERVICES}

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import functools
 import inspect
+import logging
+import sys
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -26,6 +28,7 @@ import typer
 from arena_common.bus.session import BusOptions
 from arena_common.core.config import ArenaConfig
 from arena_common.core.errors import ArenaError
+from arena_common.core.services import ServiceInfo, by_module
 from arena_common.runtime.options import (
     ConfigOpt,
     ConnectOpt,
@@ -37,7 +40,8 @@ from arena_common.runtime.options import (
     bus_options,
     load_config,
 )
-from arena_common.runtime.service import setup_logging
+from arena_common.runtime.process import lead_own_session
+from arena_common.runtime.service import setup_logging, take_cpu_share
 
 __all__ = ["SHARED_OPTIONS", "Shared", "service_command"]
 
@@ -73,10 +77,16 @@ def service_command(func: Callable[..., None]) -> Callable[..., None]:
         for name, annotation, default in SHARED_OPTIONS
     ]
 
+    info = _service_of(func)
+
     @functools.wraps(func)
     def command(**kwargs: Any) -> None:
         given = {name: kwargs.pop(name) for name, _, _ in SHARED_OPTIONS}
+        if info is not None and info.cpu == "background":
+            lead_own_session()  # its session's group can then yield without the terminal's other jobs
         setup_logging(given["log_level"])
+        if info is not None:
+            take_cpu_share(info.cpu, logging.getLogger(f"arena.{info.name}"))
         cfg = load_config(given["config"])
         bus = bus_options(given["mode"], given["connect"], given["listen"], given["zconfig"])
         try:
@@ -90,3 +100,15 @@ def service_command(func: Callable[..., None]) -> Callable[..., None]:
     command.__annotations__ = {p.name: p.annotation for p in params}
     del command.__wrapped__  # typer reads the signature above, not the wrapped function's
     return command
+
+
+def _service_of(func: Callable[..., None]) -> ServiceInfo | None:
+    """The service whose command ``func`` is (its module, also when run as ``python -m``), if it is one."""
+    module = func.__module__
+    if module == "__main__":
+        spec = getattr(sys.modules["__main__"], "__spec__", None)
+        module = spec.name if spec is not None else module
+    try:
+        return by_module(module)
+    except KeyError:
+        return None

@@ -33,6 +33,7 @@ from arena_common.bus.hosts import host_bus_options, host_name
 from arena_common.bus.session import Bus, BusOptions, Lane, Received, Subscription, open_bus
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
+from arena_common.core.services import CpuShare
 from arena_common.runtime.clock import ClockSync
 from arena_common.runtime.process import StopSignals
 
@@ -195,7 +196,51 @@ class Service:
 
 
 BACKGROUND_NICE = 10  # added to the niceness of a process the vehicles do not depend on
+VISION_NICE = -5  # the niceness of a process the vehicles' vision passes through, where it may take it
 AUTOGROUP = Path("/proc/self/autogroup")  # this session's scheduling group (Linux autogroup scheduling)
+
+
+def take_cpu_share(share: CpuShare, log: logging.Logger | None = None) -> int:
+    """Share the CPU as :data:`~arena_common.core.services.SERVICES` says of this process; its niceness.
+
+    ``vision`` goes first (:func:`favour_cpu`), ``background`` yields (:func:`yield_cpu`), ``normal`` keeps
+    what it was given.  For a process's entry point, once it leads its session (every process ``arena up``
+    starts does; :func:`~arena_common.runtime.process.lead_own_session` for a command typed in a terminal).
+    """
+    if share == "vision":
+        return favour_cpu(log)
+    if share == "background":
+        return yield_cpu(log)
+    return os.nice(0)
+
+
+def favour_cpu(log: logging.Logger | None = None) -> int:
+    """Raise this process (and its session's scheduling group) to niceness :data:`VISION_NICE`; the niceness.
+
+    For the processes every pose passes through on its way to a vehicle (and the simulated world, which
+    stands for hardware with processors of its own): on a computer busy with other work (two CPU-bound
+    programs beside a lab's arena on two cores), each stage at the weight of any other program waited
+    behind them at every hop, and poses reached the gateways older than ``gateway.max_pose_age``: vision
+    went stale by itself and PX4 landed the vehicle.  A weight of -5 (about three times the default) keeps
+    a stage's wake-up ahead of them; the stages use a small share of the CPU each, so nothing else starves.
+    Raising a priority needs ``CAP_SYS_NICE`` (root, or ``LimitNICE=`` / ``Nice=`` under systemd): without
+    it the process runs as before and says so once.
+    """
+    current = os.nice(0)
+    if current > VISION_NICE:
+        try:
+            current = os.nice(VISION_NICE - current)
+        except OSError as exc:
+            if log is not None:
+                log.info("runs at CPU niceness %d (cannot raise it to %d: %s)", current, VISION_NICE, exc)
+            return current
+    problem = _set_session_group(VISION_NICE)
+    if log is not None:
+        if problem is None:
+            log.info("running at CPU niceness %d: the vision pipeline goes first", current)
+        else:
+            log.info("running at CPU niceness %d, but %s", current, problem)
+    return current
 
 
 def yield_cpu(log: logging.Logger | None = None) -> int:
@@ -218,7 +263,7 @@ def yield_cpu(log: logging.Logger | None = None) -> int:
         if log is not None:
             log.warning("cannot lower this process's CPU priority: %s", exc)
         return os.nice(0)
-    problem = _lower_session_group(BACKGROUND_NICE)
+    problem = _set_session_group(BACKGROUND_NICE)
     if log is not None:
         if problem is None:
             log.info("running at CPU niceness %d: the vision pipeline goes first", value)
@@ -229,16 +274,17 @@ def yield_cpu(log: logging.Logger | None = None) -> int:
     return value
 
 
-def _lower_session_group(nice: int) -> str | None:
-    """Give this process's session group (its autogroup) a niceness of at least ``nice``; why it could
-    not, or None (done, or no autogroup scheduling here: the niceness is enough)."""
+def _set_session_group(nice: int) -> str | None:
+    """Give this process's session group (its autogroup) the niceness ``nice`` (lower for a background
+    process, higher for a vision stage: never the other way); why it could not, or None (done, or no
+    autogroup scheduling here: the process's niceness is enough)."""
     if os.getsid(0) != os.getpid():
         return "its session's CPU share stays as it was (it does not lead its session)"
     try:
         current = int(AUTOGROUP.read_text().split()[-1])  # "/autogroup-42 nice 0"
     except (OSError, ValueError, IndexError):
         return None  # not Linux, or a kernel without autogroup scheduling
-    if current >= nice:
+    if (nice > 0 and current >= nice) or (nice <= 0 and current <= nice):
         return None
     for _ in range(10):
         try:

@@ -99,6 +99,16 @@ def test_ground_host_units(tmp_path: Path) -> None:
         "arena-downsampler@c3.service",
         "arena-gateway@c3.service",
     ]
+    # The CPU share comes from the table too: the vision path goes first, the recorder yields.
+    for unit, nice, weight in (
+        (mocap, "-5", "300"),
+        (router, "-5", "300"),
+        (gateway, "-5", "300"),
+        (units.files[f"{UNITS}/arena-transform.service"], "-5", "300"),
+        (recorder, "10", "20"),
+    ):
+        service = unit.split("[Service]")[1]
+        assert f"\nNice={nice}\nCPUWeight={weight}\n" in service, unit
     env = units.files["etc/arena/arena.env"]
     assert f"ARENA_CONFIG={(tmp_path / 'open-lab.toml').resolve()}\n" in env and "ARENA_HOST=ground\n" in env
     assert units.enable[-1] == "arena.target" and "arena-gateway@c3.service" in units.enable

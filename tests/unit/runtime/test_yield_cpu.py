@@ -1,4 +1,5 @@
-"""The recorder and the live viewer yield the CPU to the vision pipeline, under autogroup scheduling too.
+"""The recorder and the live viewer yield the CPU to the vision pipeline, and the pipeline's stages go first,
+under autogroup scheduling too.
 
 Linux's autogroup scheduling (on by default in most distributions) shares the CPU between sessions first and
 weighs a niceness only among the processes of one session, and ``arena up`` starts every service in a session
@@ -18,7 +19,8 @@ from pathlib import Path
 
 import pytest
 
-from arena_common.runtime.service import BACKGROUND_NICE
+from arena_common.core.services import ROUTER_CPU, SERVICES
+from arena_common.runtime.service import BACKGROUND_NICE, VISION_NICE
 from tests.helpers import PYTHON, Proc, free_port, service_argv, wait_for, write_config
 
 pytestmark = pytest.mark.skipif(
@@ -105,6 +107,47 @@ def test_a_refusal_is_said_once_and_its_status_passes_through(
     assert len(re.findall(r"error: --address 0\.0\.0\.0", shell.output())) == 1, shell.output()
 
 
+def may_raise_priority() -> bool:
+    """Whether this process may lower a niceness (CAP_SYS_NICE), as the services started from it may."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, os.nice(0) - 1)
+    except OSError:
+        return False
+    os.setpriority(os.PRIO_PROCESS, 0, os.nice(0) + 1)
+    return True
+
+
+def test_the_table_favours_every_stage_a_pose_passes_and_nothing_else() -> None:
+    vision = {s.name for s in SERVICES if s.cpu == "vision"}
+    assert vision == {
+        "mocap",
+        "transform",
+        "downsampler",
+        "gateway",
+        "sim-vehicle",
+        "sim-motive",
+        "sim-world",
+    }
+    assert ROUTER_CPU == "vision"
+    assert {s.name for s in SERVICES if s.cpu == "background"} == {"recorder"}
+
+
+def test_a_vision_stage_as_arena_up_starts_it_goes_first(
+    tmp_path: Path, router_endpoint: str, processes: Callable[..., Proc]
+) -> None:
+    cfg = write_config(tmp_path, router_endpoint)
+    stage = processes("transform", service_argv("frame_transform", cfg))  # a session of its own
+    wait_for(lambda: "CPU niceness" in stage.output(), 60.0, 0.05, "the transform taking its share")
+    assert stat(stage.pid)[1] == stage.pid
+    if may_raise_priority():
+        assert stat(stage.pid)[2] == VISION_NICE, stage.output()
+        assert group(stage.pid)[1] == VISION_NICE, stage.output()
+        assert "the vision pipeline goes first" in stage.output(), stage.output()
+    else:  # without CAP_SYS_NICE it runs as before, and says why
+        assert stat(stage.pid)[2] == os.nice(0), stage.output()
+        assert f"cannot raise it to {VISION_NICE}" in stage.output(), stage.output()
+
+
 SPIN = textwrap.dedent(
     """
     import os, sys
@@ -112,6 +155,9 @@ SPIN = textwrap.dedent(
     if sys.argv[2] == "yield":
         from arena_common.runtime.service import yield_cpu
         yield_cpu()
+    elif sys.argv[2] == "favour":
+        from arena_common.runtime.service import favour_cpu
+        favour_cpu()
     print("spinning", flush=True)
     while True:
         pass
@@ -119,15 +165,29 @@ SPIN = textwrap.dedent(
 )
 
 
-def test_a_yielding_process_leaves_a_shared_cpu_to_a_pipeline_stage(processes: Callable[..., Proc]) -> None:
-    # Both on one CPU, each the leader of its session as `arena up` starts them: a pipeline stage at
-    # niceness 0 and a process that called yield_cpu (what the recorder and the viewer do).
+def share_one_cpu(processes: Callable[..., Proc], stage: str, other: str) -> tuple[int, int]:
+    """CPU time (ns) of two spinning processes on one CPU, each the leader of its session as `arena up`
+    starts them, over the stage's first second of CPU: ``stage`` and ``other`` say what each calls first
+    (``yield``, ``favour``, or nothing)."""
     cpu = str(max(os.sched_getaffinity(0)))
-    stage = processes("stage", [PYTHON, "-c", SPIN, cpu, "stage"])  # run in the checkout, as the services
-    background = processes("background", [PYTHON, "-c", SPIN, cpu, "yield"])
-    wait_for(lambda: all("spinning" in p.output() for p in (stage, background)), 60.0, 0.05, "both spinning")
-    start = cpu_ns(stage.pid), cpu_ns(background.pid)
-    wait_for(lambda: cpu_ns(stage.pid) - start[0] >= 1_000_000_000, 120.0, 0.05, "1 s of CPU for the stage")
-    stage_ns, background_ns = cpu_ns(stage.pid) - start[0], cpu_ns(background.pid) - start[1]
+    first = processes("stage", [PYTHON, "-c", SPIN, cpu, stage])  # run in the checkout, as the services
+    second = processes("other", [PYTHON, "-c", SPIN, cpu, other])
+    wait_for(lambda: all("spinning" in p.output() for p in (first, second)), 60.0, 0.05, "both spinning")
+    start = cpu_ns(first.pid), cpu_ns(second.pid)
+    wait_for(lambda: cpu_ns(first.pid) - start[0] >= 1_000_000_000, 120.0, 0.05, "1 s of CPU for the stage")
+    return cpu_ns(first.pid) - start[0], cpu_ns(second.pid) - start[1]
+
+
+def test_a_yielding_process_leaves_a_shared_cpu_to_a_pipeline_stage(processes: Callable[..., Proc]) -> None:
+    # A pipeline stage at niceness 0 and a process that called yield_cpu (what the recorder and the viewer do).
+    stage_ns, background_ns = share_one_cpu(processes, "stage", "yield")
     # Weights 1024 and 110 (niceness 10): about a tenth; without the group's niceness, half each.
     assert background_ns < 0.3 * stage_ns, (stage_ns, background_ns)
+
+
+@pytest.mark.skipif(not may_raise_priority(), reason="raising a priority needs CAP_SYS_NICE")
+def test_a_favoured_stage_takes_a_shared_cpu_from_a_busy_program(processes: Callable[..., Proc]) -> None:
+    # A favoured stage and a CPU-bound program of the user's at niceness 0.
+    stage_ns, busy_ns = share_one_cpu(processes, "favour", "busy")
+    # Weights 3121 (niceness -5) and 1024: about three to one; without the group's niceness, half each.
+    assert busy_ns < 0.55 * stage_ns, (busy_ns, stage_ns)
