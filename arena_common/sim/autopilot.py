@@ -162,7 +162,14 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
         self._start_yaw = float(yaw)
         self._base_gains = gains or ControlGains()
         self.sim = QuadSim(
-            quad, self._base_gains, battery=battery, position=self._start, yaw=yaw, soc=soc, seed=seed
+            quad,
+            self._base_gains,
+            battery=battery,
+            position=self._start,
+            yaw=yaw,
+            soc=soc,
+            seed=seed,
+            land_stages=not ideal,  # PX4's three land-detector stages; the ideal vehicle lands in 0.5 s
         )
         self.sim.estimator.output_lag_s = float(estimate_lag)
         self.sim.estimator.wander = None if ideal else PX4_SIH_WANDER

@@ -14,7 +14,8 @@ Parts, all advanced by :meth:`QuadSim.step` at a fixed tick (250 Hz by default):
   the estimate it hands on (PX4's output lags the truth a little).
 - :class:`Controller` — PX4's multicopter cascade: position P → velocity PID → acceleration →
   thrust vector and attitude (tilt limited) → attitude P (reduced attitude, yaw weighted) → rate PID.
-- :class:`LandDetector` — ground contact, low thrust and no motion for a while → landed.
+- :class:`~arena_common.sim.land_detector.LandDetector` (its own module) — ground contact, low thrust and no
+  motion for a while → landed.
 
 Plain float arithmetic on tuples is used on purpose: for 3-vectors it is several times cheaper than
 numpy, which matters when one process flies several vehicles in real time.
@@ -43,6 +44,7 @@ from arena_common.geometry.quat import (
 )
 from arena_common.sim.base import clamp as _clamp
 from arena_common.sim.estimator import EV_CTRL_HPOS, EV_CTRL_VEL, EV_CTRL_VPOS, EV_CTRL_YAW, Estimator
+from arena_common.sim.land_detector import LandDetector
 
 __all__ = [
     "EV_CTRL_HPOS",
@@ -514,49 +516,6 @@ class Controller:
         return torques[0], torques[1], torques[2]
 
 
-# --- land detector ------------------------------------------------------------------------------
-
-
-class LandDetector:
-    """PX4-like land detector: ground contact with low thrust and no vertical motion for a while."""
-
-    LAND_TIME = 0.5  # s of landed conditions before declaring landed
-    TAKEOFF_TIME = 0.1  # s off the ground before declaring airborne
-
-    def __init__(self) -> None:
-        self.landed = True
-        self._timer = 0.0
-
-    def reset(self, landed: bool = True) -> None:
-        """Force a state (boot, reboot)."""
-        self.landed = landed
-        self._timer = 0.0
-
-    def update(self, dt: float, body: RigidBody, throttle_sp: float, hover: float, motors_on: bool) -> bool:
-        """Update with one tick; returns the landed state."""
-        if not motors_on:
-            cond_landed = body.on_ground
-        else:
-            cond_landed = body.on_ground and throttle_sp < 0.9 * hover and abs(body.velocity[2]) < 0.1
-        if self.landed:
-            if not body.on_ground:
-                self._timer += dt
-                if self._timer >= self.TAKEOFF_TIME:
-                    self.landed = False
-                    self._timer = 0.0
-            else:
-                self._timer = 0.0
-        else:
-            if cond_landed:
-                self._timer += dt
-                if self._timer >= self.LAND_TIME:
-                    self.landed = True
-                    self._timer = 0.0
-            else:
-                self._timer = 0.0
-        return self.landed
-
-
 # --- the whole vehicle --------------------------------------------------------------------------
 
 
@@ -578,6 +537,7 @@ class QuadSim:
         soc: float = 1.0,
         seed: int = 0,
         dt: float = 0.004,
+        land_stages: bool = False,
     ) -> None:
         if not 0.0005 <= dt <= 0.004 + 1e-12:
             raise SimPhysicsError(f"physics tick must be between 0.5 and 4 ms (>= 250 Hz), got {dt}")
@@ -591,7 +551,7 @@ class QuadSim:
         self.battery = Battery(battery, soc)
         self.estimator = Estimator(self.rng)
         self.controller = Controller(self.params, self.gains)
-        self.land_detector = LandDetector()
+        self.land_detector = LandDetector(staged=land_stages)
         self.motor_mode = MotorMode.OFF
         self.setpoint = Setpoint()
         self.descend_rate = 0.7
@@ -660,6 +620,11 @@ class QuadSim:
                 else:
                     sp = Setpoint(velocity=(NAN, NAN, self.descend_rate), acceleration=(0.0, 0.0, NAN))
                     ctrl.position_control(sp, est, body.acceleration, est.yaw, t, pdt)
+            climb_sp = ctrl.vel_sp[2]
+            if self.land_detector.ground_contact and climb_sp == climb_sp:
+                # PX4's position controller ("flying but ground contact"): no thrust, no integrator wind-up
+                ctrl.vel_int = [0.0, 0.0, 0.0]
+                ctrl.throttle_sp = self.gains.thr_min
             thrust_cmd = ctrl.throttle_sp * max_thrust  # ESC throttle: thrust scales with the voltage
             torque_cmd = ctrl.attitude_rate_control(q_est, body.rates, dt)
             if not landed:
@@ -667,7 +632,13 @@ class QuadSim:
         body.step(dt, thrust_cmd, torque_cmd)
         self.battery.step(dt, body.thrust, mode is not MotorMode.OFF)
         self.land_detector.update(
-            dt, body, ctrl.throttle_sp, ctrl.hover_est, mode in (MotorMode.FLY, MotorMode.DESCEND)
+            dt,
+            body,
+            ctrl.throttle_sp,
+            ctrl.hover_est,
+            mode in (MotorMode.FLY, MotorMode.DESCEND),
+            self.gains,
+            climb_rate_sp=ctrl.vel_sp[2],
         )
 
     def vision_from_truth(self, latency: float = 0.0, reset_counter: int = 0) -> bool:

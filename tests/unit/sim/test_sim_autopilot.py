@@ -33,6 +33,9 @@ from arena_common.sim.autopilot import (
 from arena_common.sim.params import SIM_EXTRA_DEFAULTS
 from arena_common.sim.physics import BatteryParams
 
+#: From touchdown to disarmed: PX4 SITL 6.6-7.1 s (docs/px4.md); the simulation's land detector goes
+#: through PX4's three stages once the thrust has wound down (3-4 s), then COM_DISARM_LAND (2 s).
+DISARM_AFTER_TOUCHDOWN_S = 8.0
 SPEED = 4.0
 #: The armed state travels in the 1 Hz HEARTBEAT: a change shows within two of them (one is too tight).
 HEARTBEAT_WAIT_S = 2.0
@@ -452,7 +455,7 @@ def test_offboard_loss_lands_by_itself(make_vehicle: Callable[..., tuple[SimAuto
     assert 0.9 <= took <= 1.0 + 0.3  # COM_OF_LOSS_T = 1 s
     gcs.wait_for(lambda: gcs.mode == "AUTO.LAND", 1.5, "AUTO.LAND in the heartbeat")
     gcs.wait_for(lambda: ap.true_pose().position[2] == 0.0, 1.0 + 1.0 / 0.7 + 2.0, "touchdown")
-    gcs.wait_for(lambda: not gcs.armed, 4.0, "disarmed")
+    gcs.wait_for(lambda: not gcs.armed, DISARM_AFTER_TOUCHDOWN_S, "disarmed")
 
 
 def test_offboard_loss_with_px4_default_lands_in_position_mode(
@@ -468,7 +471,7 @@ def test_offboard_loss_with_px4_default_lands_in_position_mode(
     assert gcs.texts_with("Failsafe activated")
     gcs.wait_for(lambda: ap.true_pose().position[2] == 0.0, 1.0 + 1.0 / 0.7 + 2.0, "landed")
     assert math.dist(ap.true_pose().position[:2], xy) < 0.4  # where it was, give or take PX4's wander
-    gcs.wait_for(lambda: not gcs.armed, 4.0, "disarmed")
+    gcs.wait_for(lambda: not gcs.armed, DISARM_AFTER_TOUCHDOWN_S, "disarmed")
 
 
 def test_position_loss_failsafe_descends(make_vehicle: Callable[..., tuple[SimAutopilot, Gcs]]) -> None:
@@ -523,7 +526,7 @@ def test_low_battery_warns_then_lands(make_vehicle: Callable[..., tuple[SimAutop
     assert gcs.mode == "OFFBOARD" and gcs.armed  # a warning only
     gcs.wait_for(lambda: gcs.mode == "AUTO.LAND", 10.0, "critical battery landing")
     assert gcs.texts_with("Critical battery")
-    gcs.wait_for(lambda: not gcs.armed, 8.0, "landed and disarmed")
+    gcs.wait_for(lambda: not gcs.armed, 4.0 + DISARM_AFTER_TOUCHDOWN_S, "landed and disarmed")
     assert ap.sim.battery.soc <= 0.07
 
 

@@ -18,6 +18,7 @@ from arena_common.geometry.quat import (
 from arena_common.sim.physics import (
     Battery,
     BatteryParams,
+    LandDetector,
     MotorMode,
     QuadParams,
     QuadSim,
@@ -25,6 +26,7 @@ from arena_common.sim.physics import (
     SimPhysicsError,
 )
 
+NAN = math.nan
 VISION_EVERY = 5  # ticks: 50 Hz of vision at the 250 Hz physics rate
 
 
@@ -126,6 +128,61 @@ def test_descend_lands_at_land_speed_and_detects_landing() -> None:
     assert 1.2 < touchdown < 2.2
     assert sim.landed
     assert sim.body.position[2] == 0.0
+
+
+def test_landing_goes_through_px4s_three_stages_after_the_thrust_winds_down() -> None:
+    # Down at MPC_LAND_CRWL (0.3 m/s) onto the floor, as PX4's Land ends: the ideal vehicle is landed 0.5 s
+    # after its conditions hold; PX4's detector (staged) waits for the velocity loop's integrator to wind the
+    # thrust down to its ground-contact threshold, then cuts the thrust and passes its two later stages.
+    after_touchdown = {}
+    for staged in (False, True):
+        sim = make_sim(seed=5, land_stages=staged)
+        hover_at_1m(sim)
+        sim.setpoint = Setpoint(velocity=(NAN, NAN, 0.3), yaw=0.0)
+        touchdown = contact = landed = None
+        stages: list[tuple[bool, bool, bool]] = []
+        for i in range(round(15.0 / sim.dt)):
+            if i % VISION_EVERY == 0:
+                sim.vision_from_truth()
+            sim.step()
+            det = sim.land_detector
+            if touchdown is None and sim.body.on_ground:
+                touchdown = sim.time
+            if contact is not None and not det.landed:  # "flying but ground contact": no thrust from then
+                assert sim.controller.throttle_sp == sim.gains.thr_min
+            if contact is None and det.ground_contact:
+                contact = sim.time
+            state = (det.ground_contact, det.maybe_landed, det.landed)
+            if not stages or stages[-1] != state:
+                stages.append(state)
+            if sim.landed:
+                landed = sim.time
+                break
+        assert touchdown is not None and landed is not None, (staged, stages)
+        after_touchdown[staged] = landed - touchdown
+        if staged:
+            assert contact is not None and stages == [
+                (False, False, False),
+                (True, False, False),
+                (True, True, False),
+                (False, False, True),
+            ], stages
+            assert landed - contact == pytest.approx(2 * LandDetector.TRIG_TIME / 3, abs=3 * sim.dt)
+    assert after_touchdown[False] == pytest.approx(LandDetector.LAND_TIME, abs=0.3)
+    # PX4 SITL: 4.6-5.1 s from touchdown to landed (four flights); the integrator's wind-down gives 3-4 s.
+    assert 2.5 < after_touchdown[True] < 5.5, after_touchdown
+
+
+def test_px4s_land_detector_keeps_a_hover_and_a_climb_in_the_air() -> None:
+    sim = make_sim(seed=6, land_stages=True)
+    hover_at_1m(sim)
+    assert not sim.landed and not sim.land_detector.ground_contact
+    sim.setpoint = Setpoint(velocity=(NAN, NAN, 1.0), yaw=0.0)  # a fast descent, stopped above the floor
+    fly(sim, 0.6)
+    sim.setpoint = Setpoint.hold((0.0, 0.0, -0.3), 0.0)
+    out = fly(sim, 4.0)
+    assert not sim.landed and max(d for *_, d in out) < 0.0
+    assert not sim.land_detector.ground_contact
 
 
 def test_floor_holds_a_disarmed_vehicle_and_a_killed_one_falls_to_it() -> None:
