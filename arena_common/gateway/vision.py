@@ -96,8 +96,10 @@ class VisionSender:
     def offer(self, pose: wire.Pose, now_ns: int | None = None) -> str | None:
         """Send ``pose`` if it may be sent; the reason it was not, else None."""
         self.arrived += 1
-        self.last_arrival_mono = time.monotonic()
-        reason = self._send(pose, now_ns)
+        # One clock read for both: a pose sent is sent as it arrives, so "last pose sent" is never nearer
+        # than "last pose arrived" (a stale refusal names both).
+        self.last_arrival_mono = mono = time.monotonic()
+        reason = self._send(pose, now_ns, mono)
         if reason is not None:
             self._note(reason, pose, now_ns)
         return reason
@@ -119,7 +121,7 @@ class VisionSender:
             else:
                 self._late_ns = (min(self._late_ns[0], age), max(self._late_ns[1], age))
 
-    def _send(self, pose: wire.Pose, now_ns: int | None) -> str | None:
+    def _send(self, pose: wire.Pose, now_ns: int | None, mono: float) -> str | None:
         if not pose.ok:
             return "not tracked"
         clock_given = now_ns is not None
@@ -189,7 +191,6 @@ class VisionSender:
         self.sent += 1
         if self._refused:
             self._refused, self._ahead_ns = {}, 0
-        mono = time.monotonic()
         self.last_sent_mono = mono
         self._times.append(mono)
         self._ages.append(now_ns - t_local)  # the pose's age when it was judged fresh and sent
