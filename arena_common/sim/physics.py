@@ -627,7 +627,9 @@ class QuadSim:
                 ctrl.throttle_sp = self.gains.thr_min
             thrust_cmd = ctrl.throttle_sp * max_thrust  # ESC throttle: thrust scales with the voltage
             torque_cmd = ctrl.attitude_rate_control(q_est, body.rates, dt)
-            if not landed:
+            if not landed and not body.on_ground:
+                # On the floor the floor carries the weight: what the thrust would balance is not measured
+                # (winding the thrust down after touchdown would have taught it a hover thrust of MPC_THR_MIN).
                 ctrl.update_hover_estimate(dt, body.specific_force_body())
         body.step(dt, thrust_cmd, torque_cmd)
         self.battery.step(dt, body.thrust, mode is not MotorMode.OFF)

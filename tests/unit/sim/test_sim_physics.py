@@ -173,6 +173,26 @@ def test_landing_goes_through_px4s_three_stages_after_the_thrust_winds_down() ->
     assert 2.5 < after_touchdown[True] < 5.5, after_touchdown
 
 
+def test_a_vehicle_landed_by_px4s_stages_takes_off_again() -> None:
+    # Thrust wound down on the floor for seconds: the hover-thrust estimate must not learn from it, or the
+    # next takeoff stays on the floor (a typed-tier `arena takeoff` after `arena land` did).
+    sim = make_sim(seed=5, land_stages=True)
+    hover_at_1m(sim)
+    hover = sim.controller.hover_est
+    sim.setpoint = Setpoint(velocity=(NAN, NAN, 0.3), yaw=0.0)
+    fly(sim, 12.0)
+    assert sim.landed
+    assert sim.controller.hover_est == pytest.approx(hover, abs=0.02)
+    sim.motor_mode = MotorMode.OFF  # disarmed, then armed again
+    fly(sim, 1.0)
+    sim.motor_mode = MotorMode.IDLE
+    fly(sim, 1.0)
+    sim.motor_mode = MotorMode.FLY
+    sim.setpoint = Setpoint.hold((0.0, 0.0, -0.6), 0.0)
+    fly(sim, 6.0)
+    assert not sim.landed and sim.body.position[2] == pytest.approx(-0.6, abs=0.1)
+
+
 def test_px4s_land_detector_keeps_a_hover_and_a_climb_in_the_air() -> None:
     sim = make_sim(seed=6, land_stages=True)
     hover_at_1m(sim)
