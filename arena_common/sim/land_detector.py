@@ -50,9 +50,8 @@ class LandDetector:
     def __init__(self, staged: bool = False) -> None:
         self.staged = staged
         self.landed = True
-        self.ground_contact = (
-            False  # staged: PX4's first stage (its position controller then cuts the thrust)
-        )
+        # Staged: PX4's first two stages (at ground contact its position controller cuts the thrust).
+        self.ground_contact = False
         self.maybe_landed = False
         self._timer = 0.0
         self._stage_timers = [0.0, 0.0, 0.0]

@@ -620,8 +620,7 @@ class QuadSim:
                 else:
                     sp = Setpoint(velocity=(NAN, NAN, self.descend_rate), acceleration=(0.0, 0.0, NAN))
                     ctrl.position_control(sp, est, body.acceleration, est.yaw, t, pdt)
-            climb_sp = ctrl.vel_sp[2]
-            if self.land_detector.ground_contact and climb_sp == climb_sp:
+            if self.land_detector.ground_contact and ctrl.vel_sp[2] == ctrl.vel_sp[2]:
                 # PX4's position controller ("flying but ground contact"): no thrust, no integrator wind-up
                 ctrl.vel_int = [0.0, 0.0, 0.0]
                 ctrl.throttle_sp = self.gains.thr_min
@@ -640,7 +639,7 @@ class QuadSim:
             ctrl.hover_est,
             mode in (MotorMode.FLY, MotorMode.DESCEND),
             self.gains,
-            climb_rate_sp=ctrl.vel_sp[2],
+            climb_rate_sp=ctrl.vel_sp[2],  # NaN without climb-rate control (attitude and thrust given)
         )
 
     def vision_from_truth(self, latency: float = 0.0, reset_counter: int = 0) -> bool:
