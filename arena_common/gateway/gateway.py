@@ -123,6 +123,7 @@ class Gateway:
             offset_ns=clock.offset_ns if clock is not None else None,
             stamp_us=self.timesync.autopilot_us,
             source=keys.vision(v.name),
+            published_on_mocap_clock=cfg.pipeline.decimate == "transform",
         )
         self.health = Health(self.link, self.vision, self.clock_watch, self.stats, self.events, self.log)
         self.link.on_reject = self.health.rejected  # frames of the vehicle refused for their signature

@@ -311,6 +311,7 @@ class StateReport:
         self.clock = clock
         self.fused_tolerance = fused_tolerance  # m between the EKF position and the vision pose: fused
         self._position_problem: str | None = None
+        self._vision_stale = False
 
     def build(self, now: float) -> wire.State:
         """The state at the monotonic ``now`` (and the ``estimator`` event when the position's validity
@@ -335,6 +336,13 @@ class StateReport:
             if p is not None and problem is None:
                 problem = "no vision reaching the autopilot: its position is dead-reckoned"
                 flags.append("dead_reckoning")
+        stale = "vision_stale" in flags and vis.sent > 0
+        if stale != self._vision_stale:  # once per loss: what became of the poses since the last one sent
+            self._vision_stale = stale
+            if stale:
+                s.events.emit("estimator", f"vision stale: {vis.why(now, px4.EV_TIMEOUT_S)}", 4)
+            else:
+                s.events.emit("estimator", "vision reaching the autopilot again", 6)
         if problem is not None and "dead_reckoning" not in flags:
             flags.append("position_invalid")
         if problem != self._position_problem:

@@ -54,6 +54,7 @@ class VisionSender:
         offset_ns: Callable[[], int | None] | None = None,
         stamp_us: Callable[[int], int | None] | None = None,
         source: str = "the vision key",
+        published_on_mocap_clock: bool = False,
     ) -> None:
         if message not in ("odometry", "vision_position_estimate"):
             raise GatewayError(
@@ -81,12 +82,18 @@ class VisionSender:
         self._times: collections.deque[float] = collections.deque(maxlen=1024)
         self._ages: collections.deque[int] = collections.deque(maxlen=256)  # ns, of the last poses sent
         self.source = source  # where the poses come from, named when none arrives
+        # Whose clock stamps a pose's publication (tp): the downsampler's, beside this gateway (ours), or the
+        # frame transform's on the mocap host when it decimates (pipeline.decimate = "transform").
+        self.published_on_mocap_clock = published_on_mocap_clock
         self.arrived = 0  # poses offered (and samples refused as no pose), ever
         self.last_arrival_mono = -math.inf
         # Since the last pose sent (what explains a stale vision): refusals by reason, the least and the
         # most age of the poses refused as too old, the most lead of those from the future (ns).
         self._refused: dict[str, int] = {}
         self._late_ns = (0, 0)
+        # Of the oldest pose refused as too old: ns from its measurement to its publication on the vision
+        # key, and from there to its arrival here (the bus and this gateway); None if unstamped.
+        self._late_split: tuple[int, int] | None = None
         self._ahead_ns = 0
 
     def bump_reset(self) -> None:
@@ -113,10 +120,17 @@ class VisionSender:
     def _note(self, reason: str, pose: wire.Pose, now_ns: int | None) -> None:
         self._refused[reason] = self._refused.get(reason, 0) + 1
         if reason in ("stale", "from the future"):
-            age = (wire.now_ns() if now_ns is None else now_ns) - (pose.t - self.correction())
+            now = wire.now_ns() if now_ns is None else now_ns
+            t_local = pose.t - self.correction()
+            age = now - t_local
             if reason == "from the future":
                 self._ahead_ns = max(self._ahead_ns, -age)
-            elif self._refused[reason] == 1:
+                return
+            first = self._refused[reason] == 1
+            if first or age > self._late_ns[1]:
+                tp = pose.tp - self.correction() if self.published_on_mocap_clock else pose.tp
+                self._late_split = (tp - t_local, now - tp) if pose.tp else None
+            if first:
                 self._late_ns = (age, age)
             else:
                 self._late_ns = (min(self._late_ns[0], age), max(self._late_ns[1], age))
@@ -266,14 +280,24 @@ class VisionSender:
             said.append(f"the last one {silent:.2f} s ago ({hint})")
         return "; ".join(said)
 
+    def _late_where(self) -> str:
+        """Where the oldest pose refused as too old spent its time: before it was published on the vision key
+        (the mocap, the transform, the downsampler) or after (the bus, this gateway)."""
+        if self._late_split is None:
+            return "the pipeline runs late, a busy computer?"
+        stages, bus = (round(x * 1e-6) for x in self._late_split)
+        late = "the stages before the bus run late" if stages > bus else "the bus or this gateway runs late"
+        return (
+            f"{late}: the oldest was published {stages} ms after its measurement and arrived here {bus} ms "
+            "after that; a busy computer?"
+        )
+
     def _refusal_text(self, reason: str, n: int) -> str:
         if reason == "stale":
             lo, hi = (round(x * 1e-6) for x in self._late_ns)
             ages = f"{hi} ms" if lo == hi else f"{lo}–{hi} ms"
-            return (
-                f"{n} too old ({ages} after their measurement, more than the {self.max_age_ns * 1e-6:.0f} ms "
-                "allowed: the pipeline runs late, a busy computer?)"
-            )
+            allowed = f"more than the {self.max_age_ns * 1e-6:.0f} ms allowed"
+            return f"{n} too old ({ages} after their measurement, {allowed}: {self._late_where()})"
         if reason == "from the future":
             return f"{n} stamped up to {self._ahead_ns * 1e-6:.0f} ms ahead of this host's clock (the clocks disagree)"
         if reason == "not tracked":

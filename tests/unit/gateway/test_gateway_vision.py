@@ -63,6 +63,13 @@ def test_when_the_poses_stop_it_says_for_how_long(make_rig: Callable[..., Rig]) 
     silent = re.search(r"no pose has arrived on arena/d1/vision for ([\d.]+) s \(the mocap stopped", m[2])
     assert silent, reason
     assert float(silent[1]) >= 0.5 and float(m[1]) >= float(silent[1]), reason
+    # An event said it once, as the vision went stale, with what became of the poses.
+    said = [e.text for e in rig.event_list("d1") if e.text.startswith("vision stale: ")]
+    assert len(said) == 1, [e.text for e in rig.event_list("d1")]
+    gone = re.match(r"vision stale: no pose has arrived on arena/d1/vision for ([\d.]+) s", said[0])
+    assert gone and float(gone[1]) >= 0.4, said  # px4.EV_TIMEOUT_S
+    rig.feeding["d1"] = True
+    rig.wait_event("d1", lambda e: e.text == "vision reaching the autopilot again", 10.0, "vision again")
 
 
 def test_poses_refused_are_counted_by_reason_with_their_figures(make_rig: Callable[..., Rig]) -> None:
@@ -99,3 +106,36 @@ def test_poses_refused_are_counted_by_reason_with_their_figures(make_rig: Callab
     rig.feeding["d1"] = True
     rig.wait_state("d1", lambda s: s.vis_age is not None and s.vis_age < 0.1, 10.0, "vision fresh")
     assert gw.vision.problem(time.monotonic(), 1.0) is None
+
+
+def test_a_stale_refusal_names_where_the_poses_ran_late(make_rig: Callable[..., Rig]) -> None:
+    rig = make_rig()
+    rig.wait_state("d1", lambda s: s.vis_fused, 10.0, "vision fused")
+    gw = stop_feeding(rig)
+    pub = rig.bus.stream_publisher(keys.vision("d1"), wire.Pose)
+
+    def deliver(published_late_ns: int) -> str:
+        """A pose measured 300 ms ago and published ``published_late_ns`` after; the refusal it leaves."""
+        arrived = gw.vision.arrived
+        now = time.time_ns()
+        t = now - LATE_NS
+        pub.put(wire.Pose(t=t, p=(0.0, 0.0, 0.0), q=(1.0, 0.0, 0.0, 0.0), ok=True, tp=t + published_late_ns))
+        wait_for(lambda: gw.vision.arrived > arrived, 10.0, 0.005, "the pose counted by the gateway")
+        return refusal(rig)
+
+    # Published 20 ms after its measurement, then 280 ms on its way: the bus or the gateway ran late.
+    said = deliver(20_000_000)
+    m = re.search(r"the bus or this gateway runs late: the oldest was published (\d+) ms after its "
+                  r"measurement and arrived here (\d+) ms after that", said)  # fmt: skip
+    assert m, said
+    assert int(m[1]) == 20 and int(m[2]) >= LATE_NS * 1e-6 - 20, said
+    # An older one, published 290 ms after it was measured: the stages before the bus ran late; the oldest
+    # pose refused is the one named.
+    arrived = gw.vision.arrived
+    t = time.time_ns() - 2 * LATE_NS
+    pub.put(wire.Pose(t=t, p=(0.0, 0.0, 0.0), q=(1.0, 0.0, 0.0, 0.0), ok=True, tp=t + 590_000_000))
+    wait_for(lambda: gw.vision.arrived > arrived, 10.0, 0.005, "the pose counted by the gateway")
+    said = refusal(rig)
+    m = re.search(r"2 too old \(\d+–\d+ ms after their measurement, more than the 100 ms allowed: the "
+                  r"stages before the bus run late: the oldest was published (\d+) ms after", said)  # fmt: skip
+    assert m and int(m[1]) == 590, said
