@@ -251,31 +251,53 @@ def within(px4: float, sim: float, figure: Figure) -> bool:
     return abs(sim - px4) <= figure.tolerance(px4)
 
 
+def bounds(px4: float, flights: Sequence[float], figure: Figure) -> tuple[float, float]:
+    """Where the simulation's figure may lie when PX4 varies from flight to flight: from the least to the
+    most of PX4's figures (this run's ``px4`` and its earlier ``flights``), each end widened by its
+    tolerance."""
+    lo, hi = min(px4, *flights), max(px4, *flights)
+    return lo - figure.tolerance(lo), hi + figure.tolerance(hi)
+
+
+def verdict(px4: float, sim: float, figure: Figure, flights: Sequence[float] | None) -> tuple[bool, str]:
+    """Whether ``sim`` passes, and the table's words for it: within the tolerance of PX4's figure or, for a
+    figure PX4 varies (its earlier ``flights`` given), within :func:`bounds`."""
+    if flights is None:
+        return within(px4, sim, figure), f"±{figure.tolerance(px4):.2g}"
+    lo, hi = bounds(px4, flights, figure)
+    d = _digits(figure)
+    return lo <= sim <= hi, f"{lo:.{d}f}–{hi:.{d}f}: PX4's {len(flights) + 1} flights, ± tolerance"
+
+
 def apart(
-    px4: Sequence[Mapping[str, float]], sim: Sequence[Mapping[str, float]], unasserted: Mapping[str, str]
+    px4: Sequence[Mapping[str, float]],
+    sim: Sequence[Mapping[str, float]],
+    varies: Mapping[str, Sequence[float]],
 ) -> list[str]:
-    """The asserted figures (all but ``unasserted``) whose simulated median lies outside its tolerance of
-    PX4's, in words."""
+    """The figures whose simulated median fails its :func:`verdict` (``varies``: PX4's earlier flights of
+    the figures it varies), in words."""
     out = []
     for f in FIGURES:
         real, simulated = median(px4, f), median(sim, f)
-        if f.name not in unasserted and not within(real, simulated, f):
-            out.append(f"{f.words}: PX4 {real:.3g} {f.unit}, simulated {simulated:.3g} {f.unit}")
+        ok, words = verdict(real, simulated, f, varies.get(f.name))
+        if not ok:
+            out.append(f"{f.words}: PX4 {real:.3g} {f.unit}, simulated {simulated:.3g} {f.unit} ({words})")
     return out
 
 
 def table(
-    px4: Sequence[Mapping[str, float]], sim: Sequence[Mapping[str, float]], unasserted: Mapping[str, str]
+    px4: Sequence[Mapping[str, float]],
+    sim: Sequence[Mapping[str, float]],
+    varies: Mapping[str, Sequence[float]],
 ) -> str:
-    """The side-by-side table (Markdown): each figure's median over the runs, and their range; the
-    figures of ``unasserted`` are marked, with why."""
+    """The side-by-side table (Markdown): each figure's median over the runs, and their range; for the
+    figures of ``varies``, PX4's earlier flights too."""
 
     def cell(runs: Sequence[Mapping[str, float]], f: Figure) -> str:
         values = [r[f.name] for r in runs]
-        digits = 2 if f.unit in ("s", "m/s") else 0 if f.unit == "ms" else 1
-        mid = f"{median(runs, f):.{digits}f}"
+        mid = f"{median(runs, f):.{_digits(f)}f}"
         if len(values) > 1:
-            mid += f" ({min(values):.{digits}f}–{max(values):.{digits}f})"
+            mid += f" ({min(values):.{_digits(f)}f}–{max(values):.{_digits(f)}f})"
         return mid
 
     rows = [
@@ -284,9 +306,16 @@ def table(
         "|---|---|---|---|---|",
     ]
     for f in FIGURES:
-        real = median(px4, f)
-        verdict = ("yes" if within(real, median(sim, f), f) else "**no**") + f" (±{f.tolerance(real):.2g})"
-        if f.name in unasserted:
-            verdict += f"; not asserted: {unasserted[f.name]}"
-        rows.append(f"| {f.words} | {f.unit} | {cell(px4, f)} | {cell(sim, f)} | {verdict} |")
+        real, flights = median(px4, f), varies.get(f.name)
+        ok, words = verdict(real, median(sim, f), f, flights)
+        px4_cell = cell(px4, f)
+        if flights is not None:
+            px4_cell += "; earlier: " + ", ".join(f"{x:.{_digits(f)}f}" for x in flights)
+        rows.append(
+            f"| {f.words} | {f.unit} | {px4_cell} | {cell(sim, f)} | {'yes' if ok else '**no**'} ({words}) |"
+        )
     return "\n".join(rows)
+
+
+def _digits(f: Figure) -> int:
+    return 2 if f.unit in ("s", "m/s") else 0 if f.unit == "ms" else 1
