@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import math
+import threading
 import time
 
 from arena_common.mavlink import px4
@@ -22,18 +23,39 @@ class SimClock:
 
     ``now_ns()`` starts at ``start_ns`` (default: the wall clock at creation, so that at speed 1 the
     simulated time reads like ``time.time_ns()``) and advances ``speed`` ns per real ns.
+
+    ``max_gap_s`` is for a test whose vehicles and ground station share this clock in one process: a pause
+    of the process (a busy machine not running it) longer than that between two reads of the clock, by any
+    thread, is not simulated time, so the vehicle does not see its ground station silent for it.  A
+    service's clock keeps real time (the default, None): its vehicles face processes on the wall clock.
     """
 
-    def __init__(self, speed: float = 1.0, start_ns: int | None = None) -> None:
+    def __init__(
+        self, speed: float = 1.0, start_ns: int | None = None, max_gap_s: float | None = None
+    ) -> None:
         if not (math.isfinite(speed) and 0.01 <= speed <= 100.0):
             raise SimAutopilotError(f"clock speed must be within 0.01..100, got {speed}")
         self.speed = float(speed)
         self._t0 = time.monotonic_ns()
         self.start_ns = time.time_ns() if start_ns is None else int(start_ns)
+        self.max_gap_ns = None if max_gap_s is None else int(max_gap_s * 1e9)
+        self._lock = threading.Lock()
+        self._last_real = self._t0
+        self.skipped_ns = 0  # real ns of pauses longer than max_gap_s, not simulated
+        self.pauses = 0
 
     def now_ns(self) -> int:
         """Current simulated time in ns."""
-        return self.start_ns + int((time.monotonic_ns() - self._t0) * self.speed)
+        if self.max_gap_ns is None:
+            return self.start_ns + int((time.monotonic_ns() - self._t0) * self.speed)
+        with self._lock:  # read inside the lock: every thread sees the time move forward
+            real = time.monotonic_ns()
+            gap = real - self._last_real
+            if gap > self.max_gap_ns:
+                self.skipped_ns += gap - self.max_gap_ns
+                self.pauses += 1
+            self._last_real = real
+            return self.start_ns + int((real - self.skipped_ns - self._t0) * self.speed)
 
     def now(self) -> float:
         """Current simulated time in seconds."""
@@ -47,6 +69,9 @@ class SimClock:
         """Sleep for ``sim_seconds`` of simulated time."""
         if sim_seconds > 0:
             time.sleep(sim_seconds / self.speed)
+            if self.max_gap_ns is not None:  # asked for, so simulated
+                with self._lock:
+                    self._last_real = max(self._last_real, time.monotonic_ns())
 
 
 class TimesyncFilter:

@@ -37,6 +37,10 @@ from arena_common.sim.physics import BatteryParams
 #: through PX4's three stages once the thrust has wound down (3-4 s), then COM_DISARM_LAND (2 s).
 DISARM_AFTER_TOUCHDOWN_S = 8.0
 SPEED = 4.0
+#: Real seconds without a read of the vehicle's clock after which the process counts as paused (a busy
+#: machine), not simulated: at SPEED, more would be a silence of the ground station its vehicle fails safe
+#: on (EKF2_NOAID_TOUT's 0.6 s, COM_OF_LOSS_T's 1 s).  The vehicle's loop reads it at least every 50 ms.
+PAUSE_S = 0.08
 #: The armed state travels in the 1 Hz HEARTBEAT: a change shows within two of them (one is too tight).
 HEARTBEAT_WAIT_S = 2.0
 SYSID = 7
@@ -266,7 +270,7 @@ def make_vehicle() -> Iterator[Callable[..., tuple[SimAutopilot, Gcs]]]:
 
     def make(**kwargs: Any) -> tuple[SimAutopilot, Gcs]:
         port = free_port()
-        clock = SimClock(speed=kwargs.pop("speed", SPEED))
+        clock = SimClock(speed=kwargs.pop("speed", SPEED), max_gap_s=PAUSE_S)
         gcs = Gcs(f"udpin:127.0.0.1:{port}", clock)
         ap = SimAutopilot(f"udpout:127.0.0.1:{port}", SYSID, clock=clock, **kwargs)
         gcs.ap = ap

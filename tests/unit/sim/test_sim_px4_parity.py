@@ -29,6 +29,7 @@ from tests.unit.sim.test_sim_autopilot import (
     MAV_TYPE_GCS,
     MAV_TYPE_ONBOARD_CONTROLLER,
     ORIGIN,
+    PAUSE_S,
     SPEED,
     SYSID,
     Gcs,
@@ -44,7 +45,7 @@ def vehicle() -> Iterator[Maker]:
 
     def make(hb_type: int | None = MAV_TYPE_GCS, **kwargs: Any) -> tuple[SimAutopilot, Gcs]:
         port = free_port()
-        clock = SimClock(speed=kwargs.pop("speed", SPEED))
+        clock = SimClock(speed=kwargs.pop("speed", SPEED), max_gap_s=PAUSE_S)
         gcs = Gcs(f"udpin:127.0.0.1:{port}", clock)
         gcs.hb_type = hb_type
         ap = SimAutopilot(f"udpout:127.0.0.1:{port}", SYSID, clock=clock, **kwargs)

@@ -9,9 +9,12 @@ and the flight logic had no arithmetic failure (``internal_errors``).
 
 from __future__ import annotations
 
+import fcntl
 import math
 import os
 import socket
+import sys
+import termios
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
@@ -111,6 +114,14 @@ def test_no_command_or_message_stops_the_vehicle() -> None:
         # Still there: heartbeats flow, commands are answered, nothing raised inside.
         beats = gcs.heartbeats
         gcs.wait_for(lambda: gcs.heartbeats >= beats + 2, 5.0, "heartbeats after the barrage")
+
+        # On a busy machine the vehicle may still be reading the barrage (or rebooting, as one of its
+        # commands asked): the command is sent once nothing waits in the vehicle's socket.
+        def read_all() -> bool:
+            waiting = fcntl.ioctl(ap.conn.port.fileno(), termios.FIONREAD, b"\0\0\0\0")
+            return int.from_bytes(waiting, sys.byteorder) == 0 and not ap._rebooting_until_ns
+
+        gcs.wait_for(read_all, 60.0, "the vehicle to have read the barrage")
         if ap.system_id == SYSID:
             assert gcs.command(px4.MAV_CMD_REQUEST_MESSAGE, 148) == px4.MAV_RESULT_ACCEPTED
         assert loop.alive
