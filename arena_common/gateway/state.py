@@ -336,7 +336,7 @@ class StateReport:
             if p is not None and problem is None:
                 problem = "no vision reaching the autopilot: its position is dead-reckoned"
                 flags.append("dead_reckoning")
-        stale = "vision_stale" in flags and vis.sent > 0
+        stale = vis_age is not None and vis_age > px4.EV_TIMEOUT_S  # once a pose was sent, then none
         if stale != self._vision_stale:  # once per loss: what became of the poses since the last one sent
             self._vision_stale = stale
             if stale:

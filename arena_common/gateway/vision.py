@@ -128,8 +128,10 @@ class VisionSender:
                 return
             first = self._refused[reason] == 1
             if first or age > self._late_ns[1]:
-                tp = pose.tp - self.correction() if self.published_on_mocap_clock else pose.tp
-                self._late_split = (tp - t_local, now - tp) if pose.tp else None
+                self._late_split = None
+                if pose.tp:  # 0: a publisher that does not stamp
+                    tp = pose.tp - self.correction() if self.published_on_mocap_clock else pose.tp
+                    self._late_split = (tp - t_local, now - tp)
             if first:
                 self._late_ns = (age, age)
             else:

@@ -284,7 +284,7 @@ def _set_session_group(nice: int) -> str | None:
         current = int(AUTOGROUP.read_text().split()[-1])  # "/autogroup-42 nice 0"
     except (OSError, ValueError, IndexError):
         return None  # not Linux, or a kernel without autogroup scheduling
-    if current >= nice if nice > 0 else current <= nice:  # already as far as asked, or further
+    if (current >= nice) if nice > 0 else (current <= nice):  # already as far as asked, or further
         return None
     for _ in range(10):
         try:

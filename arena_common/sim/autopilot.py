@@ -290,6 +290,11 @@ class SimAutopilot(FlightMixin, CommandsMixin, MissionMixin, TelemetryMixin):
         return self.sim.time
 
     @property
+    def rebooting(self) -> bool:
+        """Rebooting as a command asked: silent, and what arrives meanwhile is not read (as PX4)."""
+        return bool(self._rebooting_until_ns)
+
+    @property
     def landed(self) -> bool:
         """Land detector state."""
         return self.sim.landed

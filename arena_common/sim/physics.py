@@ -620,7 +620,7 @@ class QuadSim:
                 else:
                     sp = Setpoint(velocity=(NAN, NAN, self.descend_rate), acceleration=(0.0, 0.0, NAN))
                     ctrl.position_control(sp, est, body.acceleration, est.yaw, t, pdt)
-            if self.land_detector.ground_contact and ctrl.vel_sp[2] == ctrl.vel_sp[2]:
+            if self.land_detector.ground_contact and not math.isnan(ctrl.vel_sp[2]):
                 # PX4's position controller ("flying but ground contact"): no thrust, no integrator wind-up
                 ctrl.vel_int = [0.0, 0.0, 0.0]
                 ctrl.throttle_sp = self.gains.thr_min

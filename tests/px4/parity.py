@@ -294,10 +294,10 @@ def table(
     figures of ``varies``, PX4's earlier flights too."""
 
     def cell(runs: Sequence[Mapping[str, float]], f: Figure) -> str:
-        values = [r[f.name] for r in runs]
-        mid = f"{median(runs, f):.{_digits(f)}f}"
+        values, d = [r[f.name] for r in runs], _digits(f)
+        mid = f"{median(runs, f):.{d}f}"
         if len(values) > 1:
-            mid += f" ({min(values):.{_digits(f)}f}–{max(values):.{_digits(f)}f})"
+            mid += f" ({min(values):.{d}f}–{max(values):.{d}f})"
         return mid
 
     rows = [

@@ -119,7 +119,7 @@ def test_no_command_or_message_stops_the_vehicle() -> None:
         # commands asked): the command is sent once nothing waits in the vehicle's socket.
         def read_all() -> bool:
             waiting = fcntl.ioctl(ap.conn.port.fileno(), termios.FIONREAD, b"\0\0\0\0")
-            return int.from_bytes(waiting, sys.byteorder) == 0 and not ap._rebooting_until_ns
+            return int.from_bytes(waiting, sys.byteorder) == 0 and not ap.rebooting
 
         gcs.wait_for(read_all, 60.0, "the vehicle to have read the barrage")
         if ap.system_id == SYSID:
