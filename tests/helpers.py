@@ -11,6 +11,7 @@ from __future__ import annotations
 import itertools
 import os
 import random
+import signal
 import socket
 import sys
 import threading
@@ -225,3 +226,14 @@ def open_lab(tmp_path: Path) -> Path:
     path = tmp_path / "open-lab.toml"
     path.write_text(text)
     return path
+
+
+#: What a shell resets in the job it starts: a test run under ``nohup`` (SIGHUP ignored, inherited through
+#: exec) must still show a typed command what a terminal gives it.
+TERMINAL_JOB_SIGNALS = (signal.SIGINT, signal.SIGHUP, signal.SIGTERM, signal.SIGQUIT)
+
+
+def as_a_terminal_job() -> None:
+    """In a child before exec: the signal dispositions a shell gives a foreground job (each its default)."""
+    for sig in TERMINAL_JOB_SIGNALS:
+        signal.signal(sig, signal.SIG_DFL)

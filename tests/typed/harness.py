@@ -20,7 +20,7 @@ from pathlib import Path
 
 from arena_common.bus.session import Bus
 from arena_common.runtime.process import child_setup
-from tests.helpers import free_port, wait_for
+from tests.helpers import as_a_terminal_job, free_port, wait_for
 
 ARENA = Path(sys.executable).parent / "arena"  # the console script, as `make setup` installs it
 
@@ -172,8 +172,7 @@ def _as_a_terminal_job(parent: int) -> Callable[[], None]:
     die_with_test = child_setup(parent, signal.SIGKILL)
 
     def setup() -> None:
-        for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGTERM, signal.SIGQUIT):
-            signal.signal(sig, signal.SIG_DFL)
+        as_a_terminal_job()
         die_with_test()
 
     return setup

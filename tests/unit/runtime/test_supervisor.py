@@ -24,7 +24,7 @@ from arena_common.cli import app
 from arena_common.core import config as config_mod
 from arena_common.core import keys
 from arena_common.core.config import ZenohSpec
-from arena_common.core.errors import ConfigError
+from arena_common.core.errors import ConfigError, WaitTimeout
 from arena_common.runtime.supervisor import (
     Backoff,
     ProcessSpec,
@@ -35,7 +35,7 @@ from arena_common.runtime.supervisor import (
     plan,
     sim_world_plan,
 )
-from tests.helpers import PYTHON, REPO, Proc, free_port, open_lab, wait_for, write_config
+from tests.helpers import PYTHON, REPO, Proc, as_a_terminal_job, free_port, open_lab, wait_for, write_config
 
 runner = CliRunner()
 
@@ -502,7 +502,8 @@ def test_closing_the_terminal_stops_the_demo_and_every_process(tmp_path: Path, r
     cfg = write_config(tmp_path, router_endpoint, n_vehicles=1)
     arena = Path(sys.executable).parent / "arena"
     pid, fd = pty.fork()
-    if pid == 0:  # the child: the demo on a terminal of its own
+    if pid == 0:  # the child: the demo on a terminal of its own, as its shell starts it
+        as_a_terminal_job()  # a test run under nohup would leave SIGHUP ignored, and the demo outlive it
         os.chdir(tmp_path)
         os.execv(str(arena), [str(arena), "demo", str(cfg), "--log", str(tmp_path / "demo.log")])
     try:
@@ -520,7 +521,10 @@ def test_closing_the_terminal_stops_the_demo_and_every_process(tmp_path: Path, r
 
         wait_for(started, timeout=60, interval=0.1, what="the demo and its services running")
         os.close(fd)  # the terminal window closes
-        wait_for(lambda: not _processes_of(cfg), timeout=60, interval=0.2, what="every process gone")
+        try:
+            wait_for(lambda: not _processes_of(cfg), timeout=60, interval=0.2, what="every process gone")
+        except WaitTimeout:
+            raise AssertionError(f"60 s after the terminal closed: {_processes_of(cfg)}") from None
         _, status = os.waitpid(pid, 0)
         assert os.WIFEXITED(status) or os.WIFSIGNALED(status)
     finally:
