@@ -58,6 +58,9 @@ STOP_TIMEOUT = 20.0  # s for the supervisor to stop its services before it is ki
 RESEND_LAND = 2.0  # s between land orders to a vehicle still flying (not landing) while stopping
 FLEET_RADIUS = 0.3  # m: the circle a fleet's grid flies around its spots
 HOVER_SWING = 0.4  # m: the simulated PX4 hover's largest swing about its point (docs/px4.md)
+# s a formation goal may wait for another vehicle to leave it (one held by the separation guard, one
+# displaced by a stalled machine) before the goto is sent anyway, and refused if still blocked.
+CLEAR_WAIT = 10.0
 MAX_FLEET = 250  # MAVLink system ids 1..250
 #: PX4 streams these on its onboard link at 30-100 Hz; the gateway reads none of them for itself, and a
 #: program sees raw telemetry at the vehicle's telemetry_rate (10 Hz) at most: a fleet asks for 10 Hz.
@@ -165,12 +168,31 @@ def formation_flight(
         say(f"formation step {step}/{steps}")
 
         def fly(v: Vehicle, t: dict[str, tuple[float, float]] = targets) -> None:
-            v.goto(t[v.name][0], t[v.name][1], -height, yaw=0.0)
+            goal = (t[v.name][0], t[v.name][1], -height)
+            wait_clear(v, vehicles, goal, stop)
+            v.goto(*goal, yaw=0.0)
 
         together(vehicles, fly, stop)
     say("landing")
     together(vehicles, lambda v: v.land(), stop)
     say("landed: demo complete")
+
+
+def wait_clear(
+    v: Vehicle, vehicles: Sequence[Vehicle], goal: tuple[float, float, float], stop: threading.Event
+) -> None:
+    """Wait, at most :data:`CLEAR_WAIT` s, until no other vehicle is within ``arena.min_separation`` of
+    ``goal`` (the gateway refuses such a goto).  The formation's goals are clear of each other's places by
+    design; one is not only when a vehicle is off its place (held by the separation guard, pushed off by
+    a stall): then the step waits for it to move on instead of failing the demo."""
+    cfg = v.arena.config
+    keep = cfg.arena.min_separation if cfg is not None else 0.0
+    deadline = time.monotonic() + CLEAR_WAIT
+    while not stop.is_set() and time.monotonic() < deadline:
+        others = [o.position for o in vehicles if o is not v]
+        if all(p is None or math.dist(p, goal) >= keep for p in others):
+            return
+        stop.wait(0.1)
 
 
 def circle_slots(vehicles: Sequence[Vehicle], radius: float) -> tuple[list[str], float]:
