@@ -169,7 +169,7 @@ def formation_flight(
 
         def fly(v: Vehicle, t: dict[str, tuple[float, float]] = targets) -> None:
             goal = (t[v.name][0], t[v.name][1], -height)
-            wait_clear(v, vehicles, goal, stop)
+            wait_clear(v, goal, stop)
             v.goto(*goal, yaw=0.0)
 
         together(vehicles, fly, stop)
@@ -178,19 +178,16 @@ def formation_flight(
     say("landed: demo complete")
 
 
-def wait_clear(
-    v: Vehicle, vehicles: Sequence[Vehicle], goal: tuple[float, float, float], stop: threading.Event
-) -> None:
-    """Wait, at most :data:`CLEAR_WAIT` s, until no other vehicle is within ``arena.min_separation`` of
-    ``goal`` (the gateway refuses such a goto).  The formation's goals are clear of each other's places by
-    design; one is not only when a vehicle is off its place (held by the separation guard, pushed off by
-    a stall): then the step waits for it to move on instead of failing the demo."""
+def wait_clear(v: Vehicle, goal: tuple[float, float, float], stop: threading.Event) -> None:
+    """Wait, at most :data:`CLEAR_WAIT` s, until no other vehicle of the fleet message (what the gateway
+    judges a goto by) is within ``arena.min_separation`` of ``goal``.  The formation's goals are clear of
+    each other's places by design; one is not only when a vehicle is off its place (held by the separation
+    guard, pushed off by a stall): then the step waits for it to move on instead of failing the demo."""
     cfg = v.arena.config
     keep = cfg.arena.min_separation if cfg is not None else 0.0
     deadline = time.monotonic() + CLEAR_WAIT
-    while not stop.is_set() and time.monotonic() < deadline:
-        others = [o.position for o in vehicles if o is not v]
-        if all(p is None or math.dist(p, goal) >= keep for p in others):
+    while time.monotonic() < deadline and not stop.is_set():
+        if all(math.dist(q, goal) >= keep for n, q in v.arena.positions().items() if n != v.name):
             return
         stop.wait(0.1)
 
