@@ -182,14 +182,16 @@ def wait_clear(v: Vehicle, goal: tuple[float, float, float], stop: threading.Eve
     """Wait, at most :data:`CLEAR_WAIT` s, until no other vehicle of the fleet message (what the gateway
     judges a goto by) is within ``arena.min_separation`` of ``goal``.  The formation's goals are clear of
     each other's places by design; one is not only when a vehicle is off its place (held by the separation
-    guard, pushed off by a stall): then the step waits for it to move on instead of failing the demo."""
+    guard, pushed off by a stall): then the step waits for it to move on instead of failing the demo.
+    :class:`Stopped` when ``stop`` is set meanwhile: the goto must not follow the demo's land orders."""
     cfg = v.arena.config
     keep = cfg.arena.min_separation if cfg is not None else 0.0
     deadline = time.monotonic() + CLEAR_WAIT
-    while time.monotonic() < deadline and not stop.is_set():
+    while time.monotonic() < deadline:
         if all(math.dist(q, goal) >= keep for n, q in v.arena.positions().items() if n != v.name):
             return
-        stop.wait(0.1)
+        if stop.wait(0.1):
+            raise Stopped("stopped")
 
 
 def circle_slots(vehicles: Sequence[Vehicle], radius: float) -> tuple[list[str], float]:

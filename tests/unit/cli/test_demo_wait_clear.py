@@ -52,10 +52,12 @@ def test_a_goal_still_blocked_is_sent_after_the_wait(monkeypatch: pytest.MonkeyP
     assert 0.5 <= time.monotonic() - t < 5.0
 
 
-def test_a_stop_ends_the_wait() -> None:
+def test_a_stop_ends_the_wait_and_no_goto_follows() -> None:
+    """A stop lands the vehicles: the goto a step was waiting to send must not come after the land order."""
     me = _vehicle([GOAL])
     stop = threading.Event()
     threading.Timer(0.2, stop.set).start()
     t = time.monotonic()
-    _demo.wait_clear(me, GOAL, stop)
+    with pytest.raises(_demo.Stopped):
+        _demo.wait_clear(me, GOAL, stop)
     assert time.monotonic() - t < 2.0
