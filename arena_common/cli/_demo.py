@@ -8,7 +8,8 @@ Stopping: Ctrl-C, SIGTERM and a closed terminal (SIGHUP) all stop the demo the s
 the air is told to land and the demo waits until each one is on the ground and disarmed (at most
 ``--land-timeout`` seconds), then stops the arena (the supervisor stops its services).  A second Ctrl-C
 (or SIGTERM) skips the wait and has the supervisor kill its services at once; a second SIGHUP does not
-(a closing terminal and its shell each send one).  No thread of the demo keeps the
+(a closing terminal and its shell each send one).  A demo that fails in flight (a command refused,
+a goal not reached) lands what flies the same way before it stops the arena.  No thread of the demo keeps the
 process alive once it is done: each vehicle's action runs in a daemon thread, left behind on a stop.
 """
 
@@ -432,6 +433,17 @@ def land_all(
         hurry.wait(0.2)
 
 
+def _why_land(signals: StopSignals, failed: list[BaseException], up: subprocess.Popen[bytes]) -> str | None:
+    """Why the demo lands what flies before it stops the arena, in words; ``None``: it has no reason to
+    (the flight completed) or no way to (the supervisor, and its gateways, are gone)."""
+    if signals.count:
+        name = signal.Signals(signals.received[0]).name
+        return f"stopping ({name}): every vehicle lands, then the arena stops"
+    if failed and up.poll() is None:
+        return "the demo failed: every vehicle lands, then the arena stops"
+    return None
+
+
 def _stop(up: subprocess.Popen[bytes], hurry: threading.Event, timeout: float = STOP_TIMEOUT) -> None:
     """Stop the supervisor and everything it started: SIGINT (as Ctrl-C), a second SIGINT on ``hurry``
     (it then kills its services at once), SIGKILL after ``timeout`` s (its services go with it: each one
@@ -469,7 +481,8 @@ def demo(
         typer.Option(help="Seconds to wait for the arena to come up (default 90, and 2 s more per vehicle)."),
     ] = None,
     land_timeout: Annotated[
-        float, typer.Option(help="When stopped (Ctrl-C): seconds to wait for the vehicles to land.")
+        float,
+        typer.Option(help="When stopped (Ctrl-C) or failed: seconds to wait for the vehicles to land."),
     ] = LAND_TIMEOUT,
     vehicles: Annotated[
         int | None,
@@ -485,7 +498,8 @@ def demo(
 
     With --vehicles N, N simulated vehicles d1…dN on a grid inside CONFIG's room fly it instead.
     Ctrl-C (or a closed terminal, or SIGTERM) lands the vehicles, waits for them to be on the ground
-    (at most --land-timeout s) and stops the arena; a second Ctrl-C stops everything at once.
+    (at most --land-timeout s) and stops the arena; a second Ctrl-C stops everything at once.  A demo
+    that fails (a command refused, a goal not reached) lands them the same way, then exits with 1.
     """
     path = global_config_file(config_file)
     spots: dict[str, tuple[float, float]] | None = None
@@ -596,17 +610,17 @@ def _run(
     try:
         with contextlib.suppress(OSError, ValueError):
             live.start(refresh=True)
-        while (flight.is_alive() or not once) and not stop.is_set():
+        while (flight.is_alive() or not once) and not stop.is_set() and not failed:
             if up.poll() is not None:
                 say(f"[red]the supervisor exited ({up.returncode}); see {log}[/]")
                 failed.append(ArenaError("supervisor exited"))
                 break
             stop.wait(0.5)
             refresh()
-        if signals.count:
-            name = signal.Signals(signals.received[0]).name
+        why = _why_land(signals, failed, up)
+        if why:
             say.echo = True
-            say(f"stopping ({name}): every vehicle lands, then the arena stops")
+            say(why)
             refresh()
             land_all(arena, vehicles, say, hurry, land_timeout, refresh)
     finally:

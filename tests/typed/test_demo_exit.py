@@ -57,7 +57,9 @@ def _nothing_left(tmp_path: Path, cmd: Command) -> None:
 
 
 def _index(cmd: Command, pattern: str) -> int:
-    return next(i for i, line in enumerate(cmd.lines) if re.search(pattern, line))
+    at = next((i for i, line in enumerate(cmd.lines) if re.search(pattern, line)), None)
+    assert at is not None, f"no line matches {pattern!r}:\n{cmd.output()}"
+    return at
 
 
 @pytest.mark.covers("arena demo")
@@ -88,6 +90,29 @@ def test_a_second_ctrl_c_stops_the_demo_at_once(tmp_path: Path, typed: Callable[
     assert cmd.exits_within(15) == 0, cmd.output()
     assert "stopping at once (signalled again): x7 still in the air, landing" in cmd.output()
     assert "stopping the arena at once" in cmd.output()
+    _nothing_left(tmp_path, cmd)
+
+
+def test_a_demo_that_fails_in_flight_lands_before_the_arena_stops(
+    tmp_path: Path, typed: Callable[..., Command]
+) -> None:
+    """A room of 2.4 m x 2.4 m: the safe box ends 0.9 m from the centre, so the gateway refuses the formation's
+    first goal (1 m from it) once x7 is in the air; the demo fails, lands x7, then stops the arena."""
+    cfg = _config(tmp_path)
+    cfg.path.write_text(
+        cfg.path.read_text().replace('name = "typed"\n', 'name = "typed"\nsize = [2.4, 2.4, 2.5]\n')
+    )
+    cmd = typed("demo", str(cfg.path), "--once", "--log", str(tmp_path / "demo.log"))
+    assert cmd.exits_within(FLYING_S + LANDED_S) == 1, cmd.output()
+    out = cmd.output()
+    assert re.search(r"^demo failed: x7: goto REFUSED: .*safe", out, re.M | re.I), out
+    assert (
+        _index(cmd, r"^demo failed")
+        < _index(cmd, r"^the demo failed: every vehicle lands")
+        < _index(cmd, r"^landed: x7$")
+        < _index(cmd, r"^stopping the arena$")
+    ), out
+    assert "formation step 1/6" not in out, out  # nothing more was sent after the refusal
     _nothing_left(tmp_path, cmd)
 
 
