@@ -211,12 +211,15 @@ class StopSignals:
             while not stop.wait(0.1):
                 ...
 
-    The handlers only write the signal number to a pipe; a thread of this object reads it and acts.  So
-    nothing a handler does can deadlock with the code it interrupted (``Event.set`` from a handler can: the
-    main thread may hold the event's lock when the signal arrives), and a stop is acted on while the main
-    thread is busy in C code.  SIGINT is handled even when this process was started with it ignored (a
-    background job of a shell script: the arena must still stop on Ctrl-C of its group); SIGHUP is left
-    ignored when it was (``nohup``: the user asked the process to outlive its terminal).  On exit the
+    The signal number reaches a pipe through Python's wakeup fd (:func:`signal.set_wakeup_fd`): the C-level
+    handler writes it in whichever thread the kernel chose, and a thread of this object reads it and acts.  So
+    a stop is acted on at once even while the main thread waits in C code (a lock, a socket) and the signal
+    landed on another thread — a Python-level handler runs only once the main thread is back in Python, and a
+    30 s ``Event.wait`` then delayed it 30 s — and nothing done on a signal can deadlock with the code it
+    interrupted (``Event.set`` from a handler can: the main thread may hold the event's lock).  SIGINT is
+    handled even when this process was started with it ignored (a background job of a shell script: the
+    arena must still stop on Ctrl-C of its group); SIGHUP is left ignored when it was (``nohup``: the user
+    asked the process to outlive its terminal).  On exit the
     previous handlers come back, unless a stop signal reached this process: then it is on its way out, and a
     further signal still hurries it instead of raising :class:`KeyboardInterrupt` in its clean-up.
     """
@@ -238,6 +241,7 @@ class StopSignals:
         self.received: list[int] = []
         self._previous: dict[int, Any] = {}
         self._pipe: tuple[int, int] | None = None
+        self._wakeup = -1  # the wakeup fd before this one, put back by restore()
         self._thread: threading.Thread | None = None
 
     @property
@@ -246,13 +250,7 @@ class StopSignals:
         return len(self.received)
 
     def _handler(self, signum: int, frame: FrameType | None) -> None:
-        pipe = self._pipe
-        if pipe is None:
-            return
-        try:
-            os.write(pipe[1], bytes([signum]))
-        except OSError:  # closed: act here instead (never raise into the interrupted code)
-            self._act(signum)
+        """The Python-level handler: nothing to do, the wakeup fd carried the signal to the relay."""
 
     def _act(self, signum: int) -> None:
         StopSignals.stopping = True
@@ -277,7 +275,8 @@ class StopSignals:
             if not data:
                 return
             for signum in data:
-                self._act(signum)
+                if signum in self._previous:  # the wakeup fd carries every signal with a Python handler
+                    self._act(signum)
 
     def install(self) -> StopSignals:
         """Install the handlers (from the main thread; elsewhere: nothing).  Returns ``self``."""
@@ -285,6 +284,7 @@ class StopSignals:
             return self
         read_fd, write_fd = os.pipe()
         os.set_blocking(write_fd, False)
+        self._wakeup = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
         self._pipe = (read_fd, write_fd)
         self._thread = threading.Thread(target=self._relay, args=(read_fd,), name="stop-signals", daemon=True)
         self._thread.start()
@@ -303,6 +303,7 @@ class StopSignals:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
         self._previous.clear()
+        signal.set_wakeup_fd(self._wakeup)
         read_fd, write_fd = self._pipe
         self._pipe = None
         os.close(write_fd)  # the relay reads the end of the pipe and returns

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import textwrap
 import threading
 import time
@@ -149,3 +150,34 @@ def test_a_slow_predicate_that_holds_at_the_deadline_is_not_a_timeout() -> None:
         return time.monotonic() - t0 > 0.1
 
     assert wait_until(slow, 0.05, "slow") is True
+
+
+# The main thread blocks the stop signals, so the kernel hands each to another thread, and then waits in C code
+# (an Event.wait of 120 s): a stop signalled by a Python-level handler alone would wait for the main thread.
+SIGNAL_ON_ANOTHER_THREAD = """
+import signal, sys, threading
+from arena_common.runtime.process import StopSignals
+stop = threading.Event()
+threading.Thread(target=threading.Event().wait, daemon=True).start()  # a thread the signals may land on
+with StopSignals(stop) as signals:
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
+    print("ready", flush=True)
+    stop.wait(120)
+    print("stopped", *(signal.Signals(s).name for s in signals.received), flush=True)
+"""
+
+
+def test_a_stop_signal_caught_by_another_thread_stops_a_main_thread_waiting_in_c(tmp_path: Path) -> None:
+    script = tmp_path / "other_thread.py"
+    script.write_text(SIGNAL_ON_ANOTHER_THREAD)
+    proc = subprocess.Popen([PYTHON, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline() == "ready\n"
+        proc.send_signal(signal.SIGTERM)
+        # bounded well below the script's 120 s wait: a stop acted on only when the main thread wakes fails it
+        assert proc.wait(timeout=60) == 0
+        assert proc.stdout.read() == "stopped SIGTERM\n"
+    finally:
+        proc.kill()
+        proc.wait()
