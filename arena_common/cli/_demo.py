@@ -8,8 +8,8 @@ Stopping: Ctrl-C, SIGTERM and a closed terminal (SIGHUP) all stop the demo the s
 the air is told to land and the demo waits until each one is on the ground and disarmed (at most
 ``--land-timeout`` seconds), then stops the arena (the supervisor stops its services).  A second Ctrl-C
 (or SIGTERM) skips the wait and has the supervisor kill its services at once; a second SIGHUP does not
-(a closing terminal and its shell each send one).  A demo that fails in flight (a command refused,
-a goal not reached) lands what flies the same way before it stops the arena.  No thread of the demo keeps the
+(a closing terminal and its shell each send one).  A demo that fails in flight (a command refused, a goal
+not reached) lands what flies the same way before it stops the arena.  No thread of the demo keeps the
 process alive once it is done: each vehicle's action runs in a daemon thread, left behind on a stop.
 """
 

@@ -219,9 +219,9 @@ class StopSignals:
     interrupted (``Event.set`` from a handler can: the main thread may hold the event's lock).  SIGINT is
     handled even when this process was started with it ignored (a background job of a shell script: the
     arena must still stop on Ctrl-C of its group); SIGHUP is left ignored when it was (``nohup``: the user
-    asked the process to outlive its terminal).  On exit the
-    previous handlers come back, unless a stop signal reached this process: then it is on its way out, and a
-    further signal still hurries it instead of raising :class:`KeyboardInterrupt` in its clean-up.
+    asked the process to outlive its terminal).  On exit the previous handlers come back, unless a stop
+    signal reached this process: then it is on its way out, and a further signal still hurries it instead of
+    raising :class:`KeyboardInterrupt` in its clean-up.
     """
 
     #: True once any stop signal reached this process: handlers are no longer restored.

@@ -155,11 +155,10 @@ def test_a_slow_predicate_that_holds_at_the_deadline_is_not_a_timeout() -> None:
 # The main thread blocks the stop signals, so the kernel hands each to another thread, and then waits in C code
 # (an Event.wait of 120 s): a stop signalled by a Python-level handler alone would wait for the main thread.
 SIGNAL_ON_ANOTHER_THREAD = """
-import signal, sys, threading
+import signal, threading
 from arena_common.runtime.process import StopSignals
 stop = threading.Event()
-threading.Thread(target=threading.Event().wait, daemon=True).start()  # a thread the signals may land on
-with StopSignals(stop) as signals:
+with StopSignals(stop) as signals:  # its relay thread, started unblocked, is where the signals land
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
     print("ready", flush=True)
     stop.wait(120)
