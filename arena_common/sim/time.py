@@ -26,8 +26,11 @@ class SimClock:
 
     ``max_gap_s`` is for a test whose vehicles and ground station share this clock in one process: a pause
     of the process (a busy machine not running it) longer than that between two reads of the clock, by any
-    thread, is not simulated time, so the vehicle does not see its ground station silent for it.  A
-    service's clock keeps real time (the default, None): its vehicles face processes on the wall clock.
+    thread, is not simulated time, so the vehicle does not see its ground station silent for it.  A thread
+    that :meth:`paces` the clock (the test's ground station) holds it still while it is away more than
+    ``max_gap_s``, however busily other threads read it: the vehicle's loop may run while the ground
+    station's thread waits to be scheduled, and that time would otherwise be simulated without its mocap.
+    A service's clock keeps real time (the default, None): its vehicles face processes on the wall clock.
     """
 
     def __init__(
@@ -43,6 +46,16 @@ class SimClock:
         self._last_real = self._t0
         self.skipped_ns = 0  # real ns of pauses longer than max_gap_s, not simulated
         self.pauses = 0
+        self._pacers: dict[threading.Thread, int] = {}  # thread -> real ns until which it vouches
+        self._held = False
+
+    def paces(self) -> None:
+        """Make the calling thread a pacer: while it is away (no read, no :meth:`sleep`) longer than
+        ``max_gap_s``, simulated time stands still.  A pacer that has ended no longer counts."""
+        if self.max_gap_ns is None:
+            raise SimAutopilotError("only a clock with max_gap_s can be paced")
+        with self._lock:
+            self._pacers[threading.current_thread()] = time.monotonic_ns()
 
     def now_ns(self) -> int:
         """Current simulated time in ns."""
@@ -50,12 +63,29 @@ class SimClock:
             return self.start_ns + int((time.monotonic_ns() - self._t0) * self.speed)
         with self._lock:  # read inside the lock: every thread sees the time move forward
             real = time.monotonic_ns()
-            gap = real - self._last_real
-            if gap > self.max_gap_ns:
-                self.skipped_ns += gap - self.max_gap_ns
-                self.pauses += 1
-            self._last_real = real
+            self._account(real, asked=False)
             return self.start_ns + int((real - self.skipped_ns - self._t0) * self.speed)
+
+    def _account(self, real: int, asked: bool) -> None:
+        """Simulate the real time since the last read, less what a pause or an absent pacer takes (locked).
+
+        ``asked``: the time was a :meth:`sleep` of the calling thread, simulated however long it was.
+        """
+        assert self.max_gap_ns is not None
+        gap = max(0, real - self._last_real)
+        vouched = [seen for t, seen in self._pacers.items() if t.is_alive()]
+        if vouched:  # no further than the least recent pacer's last sign of life, and its allowance
+            ran = max(0, min(gap, min(vouched) + self.max_gap_ns - self._last_real))
+        else:  # any thread's reads: a gap between them longer than max_gap_s is a pause
+            ran = gap if asked else min(gap, self.max_gap_ns)
+        me = threading.current_thread()
+        if me in self._pacers:
+            self._pacers[me] = max(self._pacers[me], real)
+        if ran < gap and not self._held:
+            self.pauses += 1
+        self._held = ran < gap
+        self.skipped_ns += gap - ran
+        self._last_real = max(self._last_real, real)
 
     def now(self) -> float:
         """Current simulated time in seconds."""
@@ -68,10 +98,14 @@ class SimClock:
     def sleep(self, sim_seconds: float) -> None:
         """Sleep for ``sim_seconds`` of simulated time."""
         if sim_seconds > 0:
+            if self.max_gap_ns is not None and threading.current_thread() in self._pacers:
+                with self._lock:  # a pacer asleep is not away
+                    me = threading.current_thread()
+                    self._pacers[me] = time.monotonic_ns() + int(sim_seconds / self.speed * 1e9)
             time.sleep(sim_seconds / self.speed)
             if self.max_gap_ns is not None:  # asked for, so simulated
                 with self._lock:
-                    self._last_real = max(self._last_real, time.monotonic_ns())
+                    self._account(time.monotonic_ns(), asked=True)
 
 
 class TimesyncFilter:

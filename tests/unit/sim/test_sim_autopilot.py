@@ -271,6 +271,7 @@ def make_vehicle() -> Iterator[Callable[..., tuple[SimAutopilot, Gcs]]]:
     def make(**kwargs: Any) -> tuple[SimAutopilot, Gcs]:
         port = free_port()
         clock = SimClock(speed=kwargs.pop("speed", SPEED), max_gap_s=PAUSE_S)
+        clock.paces()  # this thread plays the ground station: time waits for its mocap
         gcs = Gcs(f"udpin:127.0.0.1:{port}", clock)
         ap = SimAutopilot(f"udpout:127.0.0.1:{port}", SYSID, clock=clock, **kwargs)
         gcs.ap = ap

@@ -46,6 +46,7 @@ def vehicle() -> Iterator[Maker]:
     def make(hb_type: int | None = MAV_TYPE_GCS, **kwargs: Any) -> tuple[SimAutopilot, Gcs]:
         port = free_port()
         clock = SimClock(speed=kwargs.pop("speed", SPEED), max_gap_s=PAUSE_S)
+        clock.paces()  # this thread plays the ground station: time waits for its mocap
         gcs = Gcs(f"udpin:127.0.0.1:{port}", clock)
         gcs.hb_type = hb_type
         ap = SimAutopilot(f"udpout:127.0.0.1:{port}", SYSID, clock=clock, **kwargs)
