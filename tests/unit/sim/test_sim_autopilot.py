@@ -495,7 +495,7 @@ def test_position_loss_failsafe_descends(make_vehicle: Callable[..., tuple[SimAu
     )  # skipped: a starved CPU
     gcs.wait_for(lambda: gcs.mode == "AUTO.LAND", 1.5, "AUTO.LAND in the heartbeat")
     gcs.wait_for(lambda: ap.true_pose().position[2] == 0.0, 4.0, "descend to the floor")
-    gcs.wait_for(lambda: not gcs.armed, 4.0, "disarmed")
+    gcs.wait_for(lambda: not gcs.armed, DISARM_AFTER_TOUCHDOWN_S, "disarmed")
     # PX4 keeps sending LOCAL_POSITION_NED while the position is invalid.
     assert len([m for m in gcs.messages["LOCAL_POSITION_NED"] if m.time_boot_ms * 1e-3 > failsafe_at]) > 30
 

@@ -26,6 +26,7 @@ from arena_common.sim.estimator import PX4_SIH_ESTIMATE_LAG_S
 from arena_common.sim.telemetry import CAPABILITIES, FLIGHT_SW_VERSION
 from tests.unit.sim.test_sim_autopilot import (
     ARENA,
+    DISARM_AFTER_TOUCHDOWN_S,
     MAV_TYPE_GCS,
     MAV_TYPE_ONBOARD_CONTROLLER,
     ORIGIN,
@@ -279,7 +280,7 @@ def test_position_loss_with_px4_default_no_aid_timeout(
     seen = [f for i, f in enumerate(flags) if i == 0 or flags[i - 1] != f]
     assert seen[:3] == [383, 127, 101]  # fused, dead reckoning, position lost (as PX4 v1.16 SITL)
     gcs.wait_for(lambda: ap.true_pose().position[2] == 0.0, 4.0, "descend to the floor")
-    gcs.wait_for(lambda: not gcs.armed, 4.0, "disarmed")
+    gcs.wait_for(lambda: not gcs.armed, DISARM_AFTER_TOUCHDOWN_S, "disarmed")  # 3.7-3.8 s here
 
 
 @pytest.mark.parametrize("action", [px4.OBL_LAND, px4.OBL_HOLD])
