@@ -686,6 +686,11 @@ class AutopilotLoop:
         except BaseException as exc:  # handed to the owner in stop()
             self._error = exc
 
+    @property
+    def thread(self) -> threading.Thread:
+        """The thread that drives the autopilots (for :meth:`SimClock.paces`)."""
+        return self._thread
+
     def start(self) -> AutopilotLoop:
         """Start the thread."""
         self._thread.start()

@@ -30,6 +30,7 @@ class SimClock:
     that :meth:`paces` the clock (the test's ground station) holds it still while it is away more than
     ``max_gap_s``, however busily other threads read it: the vehicle's loop may run while the ground
     station's thread waits to be scheduled, and that time would otherwise be simulated without its mocap.
+    The vehicle's loop may pace it too, so that a busy machine does not make the vehicle skip time.
     A service's clock keeps real time (the default, None): its vehicles face processes on the wall clock.
     """
 
@@ -49,13 +50,13 @@ class SimClock:
         self._pacers: dict[threading.Thread, int] = {}  # thread -> real ns until which it vouches
         self._held = False
 
-    def paces(self) -> None:
-        """Make the calling thread a pacer: while it is away (no read, no :meth:`sleep`) longer than
-        ``max_gap_s``, simulated time stands still.  A pacer that has ended no longer counts."""
+    def paces(self, thread: threading.Thread | None = None) -> None:
+        """Make ``thread`` (default: the calling one) a pacer: while it is away (no read, no :meth:`sleep`)
+        longer than ``max_gap_s``, simulated time stands still.  A pacer that has ended no longer counts."""
         if self.max_gap_ns is None:
             raise SimAutopilotError("only a clock with max_gap_s can be paced")
         with self._lock:
-            self._pacers[threading.current_thread()] = time.monotonic_ns()
+            self._pacers[thread or threading.current_thread()] = time.monotonic_ns()
 
     def now_ns(self) -> int:
         """Current simulated time in ns."""

@@ -53,6 +53,7 @@ def vehicle() -> Iterator[Maker]:
         ap = SimAutopilot(f"udpout:127.0.0.1:{port}", SYSID, clock=clock, **kwargs)
         gcs.ap = ap
         loop = AutopilotLoop([ap]).start()
+        clock.paces(loop.thread)  # and the vehicle's loop: a busy machine does not make it skip time
         made.append((ap, gcs, loop))
         gcs.wait_for(lambda: gcs.heartbeat is not None, 2.0, "first heartbeat")
         return ap, gcs
