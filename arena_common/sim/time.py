@@ -73,7 +73,7 @@ class SimClock:
         ``asked``: the time was a :meth:`sleep` of the calling thread, simulated however long it was.
         """
         assert self.max_gap_ns is not None
-        gap = max(0, real - self._last_real)
+        gap = real - self._last_real  # read under the lock: never negative
         vouched = [seen for t, seen in self._pacers.items() if t.is_alive()]
         if vouched:  # no further than the least recent pacer's last sign of life, and its allowance
             ran = max(0, min(gap, min(vouched) + self.max_gap_ns - self._last_real))
@@ -86,7 +86,7 @@ class SimClock:
             self.pauses += 1
         self._held = ran < gap
         self.skipped_ns += gap - ran
-        self._last_real = max(self._last_real, real)
+        self._last_real = real
 
     def now(self) -> float:
         """Current simulated time in seconds."""
@@ -99,11 +99,13 @@ class SimClock:
     def sleep(self, sim_seconds: float) -> None:
         """Sleep for ``sim_seconds`` of simulated time."""
         if sim_seconds > 0:
-            if self.max_gap_ns is not None and threading.current_thread() in self._pacers:
+            real_s = sim_seconds / self.speed
+            if self.max_gap_ns is not None:
                 with self._lock:  # a pacer asleep is not away
                     me = threading.current_thread()
-                    self._pacers[me] = time.monotonic_ns() + int(sim_seconds / self.speed * 1e9)
-            time.sleep(sim_seconds / self.speed)
+                    if me in self._pacers:
+                        self._pacers[me] = time.monotonic_ns() + int(real_s * 1e9)
+            time.sleep(real_s)
             if self.max_gap_ns is not None:  # asked for, so simulated
                 with self._lock:
                     self._account(time.monotonic_ns(), asked=True)

@@ -7,6 +7,7 @@ streams offboard setpoints, all at rates measured in simulated time.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import select
@@ -264,25 +265,33 @@ class Gcs:
         return self.wait_for(lambda: abs(self.height - height) < 0.05, 8.0, f"climb to {height} m")
 
 
+Made = list[tuple[SimAutopilot, Gcs, AutopilotLoop]]
+
+
+def start_vehicle(
+    made: Made, hb_type: int | None = MAV_TYPE_GCS, loop_paces: bool = True, **kwargs: Any
+) -> tuple[SimAutopilot, Gcs]:
+    """A simulated vehicle on a loop of its own and this thread as its ground station, on one clock both
+    pace (``loop_paces=False``: the world goes on while the vehicle's loop is held up); added to ``made``."""
+    port = free_port()
+    clock = SimClock(speed=kwargs.pop("speed", SPEED), max_gap_s=PAUSE_S)
+    clock.paces()  # time waits for the ground station's mocap
+    gcs = Gcs(f"udpin:127.0.0.1:{port}", clock)
+    gcs.hb_type = hb_type
+    ap = SimAutopilot(f"udpout:127.0.0.1:{port}", SYSID, clock=clock, **kwargs)
+    gcs.ap = ap
+    loop = AutopilotLoop([ap]).start()
+    if loop_paces:  # a busy machine does not make the vehicle skip time
+        clock.paces(loop.thread)
+    made.append((ap, gcs, loop))
+    gcs.wait_for(lambda: gcs.heartbeat is not None, 2.0, "first heartbeat")
+    return ap, gcs
+
+
 @pytest.fixture
 def make_vehicle() -> Iterator[Callable[..., tuple[SimAutopilot, Gcs]]]:
-    made: list[tuple[SimAutopilot, Gcs, AutopilotLoop]] = []
-
-    def make(loop_paces: bool = True, **kwargs: Any) -> tuple[SimAutopilot, Gcs]:
-        port = free_port()
-        clock = SimClock(speed=kwargs.pop("speed", SPEED), max_gap_s=PAUSE_S)
-        clock.paces()  # this thread plays the ground station: time waits for its mocap
-        gcs = Gcs(f"udpin:127.0.0.1:{port}", clock)
-        ap = SimAutopilot(f"udpout:127.0.0.1:{port}", SYSID, clock=clock, **kwargs)
-        gcs.ap = ap
-        loop = AutopilotLoop([ap]).start()
-        if loop_paces:  # the vehicle's loop too: a busy machine does not make it skip time
-            clock.paces(loop.thread)
-        made.append((ap, gcs, loop))
-        gcs.wait_for(lambda: gcs.heartbeat is not None, 2.0, "first heartbeat")
-        return ap, gcs
-
-    yield make
+    made: Made = []
+    yield functools.partial(start_vehicle, made)
     for ap, gcs, loop in made:
         loop.stop()
         ap.close()

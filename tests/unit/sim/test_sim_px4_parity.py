@@ -9,6 +9,7 @@ and the vehicle's own clock, never on the test's timing.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from collections.abc import Callable, Iterator
@@ -20,7 +21,7 @@ import pytest
 
 from arena_common.mavlink import px4
 from arena_common.sim import params as sim_params
-from arena_common.sim.autopilot import AutopilotLoop, SimAutopilot, SimAutopilotError, SimClock
+from arena_common.sim.autopilot import SimAutopilot, SimAutopilotError
 from arena_common.sim.base import MapProjection
 from arena_common.sim.estimator import PX4_SIH_ESTIMATE_LAG_S
 from arena_common.sim.telemetry import CAPABILITIES, FLIGHT_SW_VERSION
@@ -30,11 +31,11 @@ from tests.unit.sim.test_sim_autopilot import (
     MAV_TYPE_GCS,
     MAV_TYPE_ONBOARD_CONTROLLER,
     ORIGIN,
-    PAUSE_S,
-    SPEED,
     SYSID,
     Gcs,
+    Made,
     free_port,
+    start_vehicle,
 )
 
 Maker = Callable[..., tuple[SimAutopilot, Gcs]]
@@ -42,23 +43,8 @@ Maker = Callable[..., tuple[SimAutopilot, Gcs]]
 
 @pytest.fixture
 def vehicle() -> Iterator[Maker]:
-    made: list[tuple[SimAutopilot, Gcs, AutopilotLoop]] = []
-
-    def make(hb_type: int | None = MAV_TYPE_GCS, **kwargs: Any) -> tuple[SimAutopilot, Gcs]:
-        port = free_port()
-        clock = SimClock(speed=kwargs.pop("speed", SPEED), max_gap_s=PAUSE_S)
-        clock.paces()  # this thread plays the ground station: time waits for its mocap
-        gcs = Gcs(f"udpin:127.0.0.1:{port}", clock)
-        gcs.hb_type = hb_type
-        ap = SimAutopilot(f"udpout:127.0.0.1:{port}", SYSID, clock=clock, **kwargs)
-        gcs.ap = ap
-        loop = AutopilotLoop([ap]).start()
-        clock.paces(loop.thread)  # and the vehicle's loop: a busy machine does not make it skip time
-        made.append((ap, gcs, loop))
-        gcs.wait_for(lambda: gcs.heartbeat is not None, 2.0, "first heartbeat")
-        return ap, gcs
-
-    yield make
+    made: Made = []
+    yield functools.partial(start_vehicle, made)
     for ap, gcs, loop in made:
         loop.stop()
         ap.close()

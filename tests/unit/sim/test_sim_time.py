@@ -70,3 +70,25 @@ def test_a_pacer_asleep_on_the_clock_is_not_away() -> None:
     thread.join()
     assert result[0] - t0 >= 4.0 * 0.2, result[0] - t0  # the other thread saw the time run meanwhile
     assert clock.now() - t0 >= 2.0
+
+
+def test_a_paced_thread_away_holds_the_clock_read_by_the_one_that_named_it() -> None:
+    """The vehicle's loop named as a pacer by the test: while it is held up, the test's reads do not
+    run the clock."""
+    clock = SimClock(speed=4.0, max_gap_s=0.05)
+    release = threading.Event()
+    loop = threading.Thread(target=release.wait)  # away from the clock until released
+    loop.start()
+    clock.paces(loop)
+    t0 = clock.now()
+    end = time.monotonic() + 0.3
+    while time.monotonic() < end:
+        clock.now()
+        time.sleep(0.005)
+    held = clock.now() - t0
+    release.set()
+    loop.join()
+    t1 = clock.now()  # an ended pacer no longer counts
+    time.sleep(0.02)
+    assert held <= 4.0 * (0.05 + 0.05), held
+    assert clock.now() - t1 >= 4.0 * 0.015, clock.now() - t1
