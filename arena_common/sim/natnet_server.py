@@ -299,6 +299,11 @@ class NatNetServer:
         """The clients that connected and have not left."""
         return self._sessions.clients()
 
+    @property
+    def clients_left(self) -> list[ClientInfo]:
+        """The clients that left, timed out or were found gone (their port closed), oldest first."""
+        return self._sessions.left()
+
     def server_info(self) -> ServerInfo:
         """The SERVERINFO this server sends."""
         return ServerInfo(

@@ -23,6 +23,7 @@ a SERVERINFO.
 
 from __future__ import annotations
 
+import collections
 import logging
 import socket
 import threading
@@ -61,6 +62,9 @@ class SendResult:
     gone: list[Address] = field(default_factory=list)
 
 
+LEFT_KEPT = 64  # clients that left, kept for who asks what they had declared
+
+
 class Subscriptions:
     """The subscribed clients of a NatNet server and, in unicast, the sockets their frames leave from.
 
@@ -74,6 +78,7 @@ class Subscriptions:
         self.client_timeout = client_timeout
         self._lock = threading.Lock()  # the clients, their sockets, and every unicast send
         self._clients: dict[Address, ClientInfo] = {}
+        self._left: collections.deque[ClientInfo] = collections.deque(maxlen=LEFT_KEPT)
         self._socks: dict[Address, socket.socket] = {}  # per client: bound to the data port, connected
         self._spare: socket.socket | None = None  # for a client whose own socket could not be made
         self._warned_port = False
@@ -106,6 +111,11 @@ class Subscriptions:
         """Copies of the subscribed clients."""
         with self._lock:
             return [replace(c) for c in self._clients.values()]
+
+    def left(self) -> list[ClientInfo]:
+        """Copies of the clients that left, timed out or were found gone, oldest first (the last ``LEFT_KEPT``)."""
+        with self._lock:
+            return [replace(c) for c in self._left]
 
     def __len__(self) -> int:
         return len(self._clients)
@@ -178,7 +188,10 @@ class Subscriptions:
         sock = self._socks.pop(address, None)
         if sock is not None:
             sock.close()
-        return self._clients.pop(address, None) is not None
+        client = self._clients.pop(address, None)
+        if client is not None:
+            self._left.append(client)
+        return client is not None
 
     def _data_port_socket(self, address: Address) -> socket.socket | None:
         """A socket bound to the data port and connected to ``address`` (``None``: use the spare one).

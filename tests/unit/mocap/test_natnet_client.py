@@ -290,6 +290,20 @@ def connected(client: NatNetClient) -> Callable[[], bool]:
     return lambda: client.version is not None and client.models > 0
 
 
+def assert_echo_stamped(frame: TimedFrame, client: NatNetClient, rtt_before_ns: int) -> None:
+    """``frame.t`` is its exposure, ``frame.lat`` before the server sent it, within the echo clock's own error.
+
+    The offset the frame was mapped with is off by at most half the round trip it came from; that round trip
+    is the fastest of the window, so no slower than the one before the frames streamed (nor than the one
+    after). A busy machine makes round trips slow, so the bound is the clock's, not a fixed margin.
+    """
+    assert frame.tsrc == "echo" and client.clock is not None and client.clock.rtt_ns is not None
+    error_ns = max(rtt_before_ns, client.clock.rtt_ns) // 2 + 1_000  # + tick rounding
+    sent_by_server = frame.t + frame.lat  # on the local clock, as the echo clock maps it
+    assert sent_by_server <= frame.arrival + error_ns, (frame.t, frame.arrival, error_ns)
+    assert sent_by_server > frame.arrival - error_ns - 1_000_000_000  # the old clock's origin is 5 s off
+
+
 # ------------------------------------------------------------------------------------------------------------
 # Echo clock
 # ------------------------------------------------------------------------------------------------------------
@@ -348,6 +362,7 @@ def test_handshake_names_and_frames(
         assert client.names == {1: "d1", 7: "other"}
         if version >= "3":
             poll_until(client, lambda: client.clock is not None and client.clock.samples >= 3, what="echo")
+        rtt_before = client.clock.rtt_ns if client.clock is not None else None
         sent_at = time.time_ns()
         frames = stream_until(server, client, 5)
         last = frames[-1]
@@ -362,7 +377,8 @@ def test_handshake_names_and_frames(
             assert last.tsrc == "echo"
             assert last.lat == pytest.approx(4_000_000, abs=200)  # tick rounding
             # The server stamped transmit "now" and the exposure 4 ms before: t lands 4 ms before sending.
-            assert last.arrival - 30_000_000 < last.t < last.arrival - 3_000_000
+            assert rtt_before is not None
+            assert_echo_stamped(last, client, rtt_before)
         else:
             assert last.tsrc == "arrival" and last.t == last.arrival and last.lat == -1
         if not multicast and Version.parse(version) >= Version(2, 10):  # Motive drops silent unicast clients
@@ -463,10 +479,11 @@ def test_server_restart_frame_numbers_going_back(fake_motive: Callable[..., Fake
         poll_until(client, lambda: "server_restart" in rejects.reasons(), what="the restart noticed")
         poll_until(client, lambda: server.count(MessageId.CONNECT) > connects, what="a new CONNECT")
         poll_until(client, lambda: client.clock is not None and client.clock.ready, what="a new echo clock")
+        assert client.clock is not None and client.clock.rtt_ns is not None
+        rtt_before = client.clock.rtt_ns
         frames = stream_until(server, client, 3)
         assert frames[0].frame_number < 20
-        assert frames[-1].tsrc == "echo"
-        assert frames[-1].arrival - 30_000_000 < frames[-1].t < frames[-1].arrival - 3_000_000
+        assert_echo_stamped(frames[-1], client, rtt_before)
 
 
 @pytest.mark.parametrize("version", ["2.9", "3.0", "3.1", "4.0", "4.1"])

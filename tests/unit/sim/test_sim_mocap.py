@@ -508,6 +508,7 @@ def test_server_requests_bitstream_echo_keepalive_and_models_changed() -> None:
         # DISCONNECT unsubscribes; a KEEPALIVE from the same socket subscribes again (server restarts).
         client.sock.sendto(natnet.encode_disconnect(), client.server)
         wait_for(lambda: server.clients == [], 2.0, what="client gone")
+        assert [c.address for c in server.clients_left] == [client.sock.getsockname()]
         client.sock.sendto(natnet.encode_keepalive(), client.server)
         wait_for(lambda: len(server.clients) == 1, 2.0, what="client back")
         assert server.counters.unrecognized == 1
