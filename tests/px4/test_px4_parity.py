@@ -26,29 +26,28 @@ from tests.px4.parity import FIGURES, apart, fly, table
 
 RUNS = int(os.environ.get("ARENA_PARITY_RUNS", "1"))
 #: The figures PX4 itself varies from one flight to the next by more than their tolerance, and PX4's figure in
-#: each of its earlier flights of this program (four PX4 SITL flights, this 2-core machine, 2026-11-28, in
-#: order; the position step's peak and the touchdown over three of them; the velocity reached over the seven
-#: flights docs/px4.md's table recorded from 2026-11-28 to 2026-12-02 and the landing CI's of 2026-12-02:
-#: 0.29-0.42 m/s against a tolerance of 0.07-0.1, while the simulation flew 0.39-0.40 in each; the position
-#: step's half-way over the seven flights of docs/px4.md's tables from 2026-11-28 to 2026-12-02 and two
-#: fresh-clone CI runs of 2026-12-02: 1.15-1.60 s against a tolerance of 0.29-0.40, the simulation 1.48-1.53).
-#: Each of these simulated figures must lie between the least and the most of PX4's (those and this run's),
-#: each end widened by its tolerance (:func:`tests.px4.parity.bounds`); every other figure within its
-#: tolerance of this run's.
+#: each of its earlier flights of this program, in order (this 2-core machine; unless said otherwise, its four
+#: PX4 SITL flights of 2026-11-28).  Each of these simulated figures must lie between the least and the most of
+#: PX4's (those and this run's), each end widened by its tolerance (:func:`tests.px4.parity.bounds`); every
+#: other figure within its tolerance of this run's.
 PX4_VARIES: dict[str, tuple[float, ...]] = {
     "hover_p50_cm": (13.7, 8.2, 12.4, 12.1),
     "hover_max_cm": (22.2, 17.6, 22.0, 16.0),
     "goto_end_cm": (19.3, 7.2, 21.1, 19.8),  # its wander in one 2 s window
     "traj_max_cm": (22.0, 16.3, 22.4, 23.2),
     "traj_rms_cm": (16.3, 11.6, 15.9, 16.6),
+    # The seven flights of docs/px4.md's tables, 2026-11-28 to 2026-12-02, and the landing CI's of 2026-12-02
+    # (tolerance 0.07-0.1 m/s; the simulation flew 0.39-0.40 in each).
     "velocity_ms": (0.38, 0.35, 0.36, 0.31, 0.42, 0.42, 0.36, 0.29),
     "exit_coast_cm": (21.3, 13.6, 26.3, 21.3),
     "exit_stop_s": (1.41, 0.65, 2.14, 1.45),
+    # The seven flights of docs/px4.md's tables, 2026-11-28 to 2026-12-02, and two fresh-clone CI runs of
+    # 2026-12-02 (tolerance 0.29-0.40 s; the simulation flew 1.48-1.53).
     "step_half_s": (1.42, 1.43, 1.56, 1.60, 1.33, 1.49, 1.56, 1.44, 1.15),
-    "step_peak_ms": (0.58, 0.86, 0.77),
+    "step_peak_ms": (0.58, 0.86, 0.77),  # three of the four
     "climb_cm": (14.2, 21.9, 5.6, 14.6),
     "estimate_lag_ms": (100.0, 90.0, 120.0, 110.0),
-    "touchdown_s": (3.62, 2.85, 3.03),
+    "touchdown_s": (3.62, 2.85, 3.03),  # three of the four
 }
 DOC = Path(__file__).resolve().parents[2] / "docs" / "px4.md"
 MARKS = re.compile(r"(<!-- parity:begin -->\n).*?(<!-- parity:end -->)", re.S)
