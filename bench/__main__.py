@@ -86,6 +86,14 @@ Growth = Annotated[
         "1,10,20,50 unless --vehicles is given; 0: skip).",
     ),
 ]
+GatewayHosts = Annotated[
+    int,
+    typer.Option(
+        "--gateway-hosts",
+        help="Processes the fleet's gateways run in, the vehicles split over them (bench.gateway_host); "
+        "0: one per vehicle, as deployed.",
+    ),
+]
 Out = Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")]
 Docs = Annotated[
     bool | None,
@@ -128,6 +136,7 @@ def bench(
     vehicle_mode: VehicleMode = "",
     fleet: Fleet = None,
     growth: Growth = None,
+    gateway_hosts: GatewayHosts = 0,
     out: Out = Path("bench-results"),
     docs: Docs = None,
     docs_file: DocsFile = Path("docs/performance.md"),
@@ -160,6 +169,8 @@ def bench(
         changes["decimate"] = tuple(decimate)
     if vehicle_mode:
         changes["vehicle_mode"] = vehicle_mode
+    if gateway_hosts:
+        changes["gateway_hosts"] = gateway_hosts
     if fleet is not None:
         changes["fleet"] = fleet
     elif vehicles is not None:  # `-n 1` asks for one vehicle: the fleet of 50 only when asked for too

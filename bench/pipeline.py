@@ -86,6 +86,9 @@ class RunSettings:
     profile: Callable[[ProcessSet, float], dict[str, Any]] | None = None  # run during the window
     hops: bool = False  # also subscribe to the first vehicle's mocap/pose/vision for a per-stage breakdown
     vehicle_mode: str = ""  # the config's zenoh.vehicle_mode ("": its default)
+    # Processes the gateways run in: 0, one per vehicle (as deployed); K, the vehicles split over K
+    # processes of bench.gateway_host (the per-host design of issue #35, measured)
+    gateway_hosts: int = 0
 
 
 @dataclass
@@ -399,10 +402,21 @@ class _ArenaRun:
         self._decimators(vision_rate)
         if self.decimate == "downsampler":
             self._spawn("transform", "transform", "services.frame_transform", *self.common)
-        for v in self.names:
-            self._spawn(f"gateway.{v}", "gateway", "services.mavlink_gateway", *self.common, "--vehicle", v)
+        self._gateways()
         self._all_up()
         self.startup["services"] = time.monotonic() - t_start
+
+    def _gateways(self) -> None:
+        k = self.settings.gateway_hosts
+        if k <= 0:
+            for v in self.names:
+                args = (*self.common, "--vehicle", v)
+                self._spawn(f"gateway.{v}", "gateway", "services.mavlink_gateway", *args)
+            return
+        for i in range(min(k, self.n)):
+            share = self.names[i::k]
+            vehicles = [a for v in share for a in ("--vehicle", v)]
+            self._spawn(f"gateway-host.{i}", "gateway", "bench.gateway_host", *self.common, *vehicles)
 
     def _decimators(self, vision_rate: float) -> None:
         if self.decimate == "transform":
@@ -489,6 +503,9 @@ class _ArenaRun:
             startup=dict(self.startup) if not self.results else {},
         )
         keys_ = ("frames", "frame_gaps", "substituted", "unmatched_time", "clock_residual_us_p99")
+        if self.settings.gateway_hosts > 0:
+            k = min(self.settings.gateway_hosts, self.n)
+            point.notes.append(f"gateways in {k} process{'es' if k > 1 else ''} (bench.gateway_host)")
         point.notes.append(
             f"vision {vision_rate:g} Hz, "
             + ", ".join(

@@ -114,6 +114,7 @@ class BenchOptions:
     # Vehicle counts of the growth table: each deployed as the fleet is (the fleet's own point reused), so
     # that the cost per vehicle reads across fleet sizes (() or 0: skip)
     growth: tuple[int, ...] = (1, 10, 20, 50)
+    gateway_hosts: int = 0  # processes the fleet's gateways run in (0: one per vehicle, as deployed)
     quick: bool = False
 
     @classmethod
@@ -157,6 +158,8 @@ class BenchOptions:
             raise BenchError(f"growth vehicle counts must be within 1..200, got {self.growth}")
         if self.fleet and not 1 <= self.fleet <= 200:
             raise BenchError(f"the fleet must be within 1..200 vehicles, got {self.fleet}")
+        if self.gateway_hosts < 0:
+            raise BenchError(f"--gateway-hosts must not be negative, got {self.gateway_hosts}")
         if self.vehicle_mode not in ("", "client", "same"):
             raise BenchError(f"--vehicle-mode must be client or same, got {self.vehicle_mode!r}")
         bad = [d for d in self.decimate if d not in CHAINS]
@@ -478,6 +481,7 @@ def _fleet_settings(options: BenchOptions, settings: RunSettings) -> RunSettings
         settle=options.fleet_settle,
         idle=max(settings.idle, 2.0),
         vehicle_mode=options.vehicle_mode or "client",
+        gateway_hosts=options.gateway_hosts,
     )
 
 

@@ -32,7 +32,7 @@ from bench.matching import (
     payload_sizes,
 )
 from bench.peer import summarise
-from bench.pipeline import PointResult, vision_rates
+from bench.pipeline import PointResult, RunSettings, run_arena, vision_rates
 from tests.helpers import REPO
 
 pytestmark = pytest.mark.system
@@ -215,6 +215,22 @@ def test_tiny_run_of_every_part(tmp_path: Path) -> None:
 
     report.update_docs(docs, bench.load_result(tmp_path / "results" / "latest.json"))
     assert docs.read_text().count(report.DOCS_BEGIN) == 1  # replaced, not appended
+
+
+def test_the_gateways_of_several_vehicles_in_one_process(tmp_path: Path) -> None:
+    """``--gateway-hosts 1``: the fleet's gateways in one bench.gateway_host process, each vehicle's vision
+    still reaching its own MAVLink socket, matched to its frames."""
+    settings = RunSettings(
+        duration=1.0, warmup=0.3, idle=0.3, logs=tmp_path, repo=REPO, vehicle_mode="client", gateway_hosts=1
+    )
+    (point,) = run_arena(
+        3, [180.0], settings, realistic_vision=50.0, decimate="transform", deployed_only=True
+    )
+    gateways = [name for name, info in point.per_service.items() if info["role"] == "gateway"]
+    assert gateways == ["gateway-host.0"], point.per_service
+    assert point.vision_rate["min"] > 0 and point.mismatched == 0 and point.duplicates == 0
+    assert point.delivered > 0 and point.delivered + point.lost == point.expected
+    assert "gateways in 1 process (bench.gateway_host)" in point.notes
 
 
 def test_floor_decimation_keeps_the_share_evenly() -> None:
