@@ -223,8 +223,9 @@ def growth_rows(points: Sequence[PointResult]) -> list[list[str]]:
                 f"{s['pipeline_cpu']:.1f}",
                 f"{s['pipeline_cpu_per_vehicle']:.2f}",
                 f"{s['per_vehicle_cpu']:.2f}",
-                _f(sum(vehicle_rss) / len(vehicle_rss), 1) if vehicle_rss else "—",
-                f"{sum(idle) / len(idle):.2f}" if idle else "—",
+                # per vehicle, also when one process serves several (bench.gateway_host)
+                _f(sum(vehicle_rss) / n, 1) if vehicle_rss else "—",
+                f"{sum(idle) / n:.2f}" if idle else "—",
                 _f(p.latency["p50"]),
                 _f(p.latency["p99"]),
                 _vision_cell(p),
