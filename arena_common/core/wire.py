@@ -408,12 +408,7 @@ class FleetVehicle(Payload, frozen=True):
     DOC = "One tracked vehicle: its name, position and velocity (arena NED)."
     n: Annotated[Str, _doc("Vehicle name")]
     p: Annotated[Vec3, _doc("Position north, east, down", unit="m")]
-    v: Annotated[
-        Vec3,
-        _doc(
-            "Velocity north, east, down: the mean since the previous message (zeros when unknown)", unit="m/s"
-        ),
-    ]
+    v: Annotated[Vec3, _doc("Velocity north, east, down (zeros when unknown)", unit="m/s")]
 
 
 @payload

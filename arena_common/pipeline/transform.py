@@ -24,8 +24,6 @@ from arena_common.runtime.service import Service
 __all__ = ["FLEET_RATE", "Decimators", "FleetPublisher", "PoseConverter", "frame_transform"]
 
 FLEET_RATE = 10.0  # Hz of arena/sys/fleet: every vehicle's position, for the gateways' separation
-#: Periods of the fleet message beyond which a vehicle's previous position is too old to average over.
-MEAN_MAX_PERIODS = 3
 VELOCITY_CUTOFF_HZ = 15.0
 VELOCITY_MAX_GAP_S = 0.1
 _ZERO3: wire.Vec3 = (0.0, 0.0, 0.0)
@@ -122,20 +120,12 @@ class Decimators:
 class FleetPublisher:
     """Gathers each vehicle's newest tracked pose and publishes them all as one
     :class:`~arena_common.core.wire.Fleet` on ``arena/sys/fleet`` at ``rate`` Hz: what every gateway
-    reads to keep its vehicle apart from the others (one subscription each, whatever the fleet's size).
-
-    Each vehicle's velocity is its mean since the previous message (the way it moved between the two
-    positions, by their pose times), not the pose's instantaneous estimate: a separation guard that takes
-    a vehicle judges its motion, and one step of a coarse position (SIH's truth comes quantised to 1.1 cm,
-    a mocap's marker noise) made the estimate spike to 0.8 m/s for one frame while the vehicle hovered,
-    and the guard held a vehicle 0.9 m from another.  A vehicle seen for the first time, or again after
-    more than :data:`MEAN_MAX_PERIODS` periods, has its pose's estimate instead."""
+    reads to keep its vehicle apart from the others (one subscription each, whatever the fleet's size)."""
 
     def __init__(self, publisher: Publisher[wire.Fleet], rate: float = FLEET_RATE) -> None:
         self.publisher = publisher
         self.period_ns = int(1e9 / rate)
         self._latest: dict[str, wire.Pose] = {}
-        self._sent: dict[str, wire.Pose] = {}  # each vehicle's pose in the previous message
         self._next_ns = 0
         self.published = 0
 
@@ -145,7 +135,6 @@ class FleetPublisher:
             self._latest[drone] = pose
         else:
             self._latest.pop(drone, None)
-            self._sent.pop(drone, None)
 
     def tick(self, now_ns: int) -> wire.Fleet | None:
         """Publish when due (``now_ns`` on any monotonic-enough clock); the message sent, or None."""
@@ -155,22 +144,8 @@ class FleetPublisher:
         latest = self._latest
         fleet = wire.Fleet(
             t=max(p.t for p in latest.values()),
-            b=tuple(wire.FleetVehicle(n, p.p, self._velocity(n, p)) for n, p in latest.items()),
+            b=tuple(wire.FleetVehicle(n, p.p, p.v if p.vok else _ZERO3) for n, p in latest.items()),
         )
-        self._sent = dict(latest)
         self.publisher.put(fleet)
         self.published += 1
         return fleet
-
-    def _velocity(self, drone: str, pose: wire.Pose) -> tuple[float, float, float]:
-        """``drone``'s mean velocity since the previous message (its pose's estimate when unknown)."""
-        before = self._sent.get(drone)
-        dt_ns = pose.t - before.t if before is not None else 0
-        if before is not None and self.period_ns // 2 <= dt_ns <= MEAN_MAX_PERIODS * self.period_ns:
-            dt = dt_ns * 1e-9
-            return (
-                (pose.p[0] - before.p[0]) / dt,
-                (pose.p[1] - before.p[1]) / dt,
-                (pose.p[2] - before.p[2]) / dt,
-            )
-        return pose.v if pose.vok else _ZERO3

@@ -26,7 +26,7 @@ from arena_common.runtime.options import read_config
 from arena_common.runtime.px4_sitl import Px4Sitl, Px4SitlError
 from arena_common.runtime.supervisor import plan, sim_world_plan
 from services import sim_vehicle
-from services.px4_truth import EARTH_RADIUS, TruthFrame, geodetic_to_ned
+from services.px4_truth import EARTH_RADIUS, Smoothed, TruthFrame, geodetic_to_ned
 
 LISTENER_OUTPUT = """
 TOPIC: estimator_status_flags
@@ -278,3 +278,29 @@ def test_systemd_units_follow_the_autopilots(tmp_path: Path) -> None:
     assert not any(f.endswith("arena-sim-vehicle.service") for f in units)  # it would find nothing to fly
     with pytest.raises(DeployError, match=r"serves autopilot = \"px4-sitl\" vehicles \(p1\)"):
         render_systemd(_load(tmp_path, MIXED), "ground", workdir=tmp_path)
+
+
+def test_the_truths_quantised_position_is_smoothed_without_lag() -> None:
+    """SIH's truth steps 1.1 cm north (1e-7°): a hover wandering across a step, and a flight at 0.8 m/s,
+    through the bridge's smoothing at 100 Hz.  The steps shrink tenfold (what one frame of the transform's
+    velocity estimate sees), and the smoothed position stays on the true one (no lag added)."""
+    quantum, dt_ns = 0.0111195, 10_000_000
+    for speed in (0.0, 0.8):
+        smooth, before, worst_step, worst_error = Smoothed(), None, 0.0, 0.0
+        for k in range(300):
+            t = k * dt_ns * 1e-9
+            true_n = 0.3 + speed * t + 0.05 * math.sin(2 * math.pi * 0.3 * t)
+            true_v = speed + 0.05 * 2 * math.pi * 0.3 * math.cos(2 * math.pi * 0.3 * t)
+            sample = (round(true_n / quantum) * quantum, 0.0, -1.0)
+            p = smooth.update(k * dt_ns, sample, (round(true_v * 100) / 100, 0.0, 0.0))
+            if before is not None and k > 50:
+                worst_step = max(worst_step, abs(p[0] - before[0] - true_v * 0.01))
+                worst_error = max(worst_error, abs(p[0] - true_n))
+            before = p
+        assert worst_step < 0.002, (speed, worst_step)  # a raw step: 0.0111 m
+        assert worst_error < 0.008, (speed, worst_error)  # within the quantum itself
+    # A jump (PX4 booted again) or a pause is not smoothed across.
+    smooth = Smoothed()
+    smooth.update(0, (0.0, 0.0, -1.0), (0.0, 0.0, 0.0))
+    assert smooth.update(10_000_000, (1.0, 0.0, -1.0), (0.0, 0.0, 0.0)) == (1.0, 0.0, -1.0)
+    assert smooth.update(500_000_000, (2.0, 0.0, -1.0), (0.0, 0.0, 0.0)) == (2.0, 0.0, -1.0)
