@@ -406,16 +406,20 @@ class _ArenaRun:
         self._all_up()
         self.startup["services"] = time.monotonic() - t_start
 
+    @property
+    def gateway_hosts(self) -> int:
+        """Processes of bench.gateway_host the gateways run in (0: one gateway process per vehicle)."""
+        return min(self.settings.gateway_hosts, self.n)
+
     def _gateways(self) -> None:
-        k = self.settings.gateway_hosts
+        k = self.gateway_hosts
         if k <= 0:
             for v in self.names:
                 args = (*self.common, "--vehicle", v)
                 self._spawn(f"gateway.{v}", "gateway", "services.mavlink_gateway", *args)
             return
-        for i in range(min(k, self.n)):
-            share = self.names[i::k]
-            vehicles = [a for v in share for a in ("--vehicle", v)]
+        for i in range(k):
+            vehicles = [a for v in self.names[i::k] for a in ("--vehicle", v)]
             self._spawn(f"gateway-host.{i}", "gateway", "bench.gateway_host", *self.common, *vehicles)
 
     def _decimators(self, vision_rate: float) -> None:
@@ -503,8 +507,7 @@ class _ArenaRun:
             startup=dict(self.startup) if not self.results else {},
         )
         keys_ = ("frames", "frame_gaps", "substituted", "unmatched_time", "clock_residual_us_p99")
-        if self.settings.gateway_hosts > 0:
-            k = min(self.settings.gateway_hosts, self.n)
+        if (k := self.gateway_hosts) > 0:
             point.notes.append(f"gateways in {k} process{'es' if k > 1 else ''} (bench.gateway_host)")
         point.notes.append(
             f"vision {vision_rate:g} Hz, "

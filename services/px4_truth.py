@@ -14,7 +14,8 @@ positions to ~1.1 cm north, ~0.75 cm east and 1 mm down, which no motion-capture
 hovering vehicle's position then stepped by a centimetre within one frame, the frame transform's velocity
 estimate jumped to 0.8 m/s, and the separation guard held a PX4 hovering 0.9 m from another.  So each
 position is carried forward by the message's own velocity (1 cm/s steps) and drawn toward the quantised
-one over :data:`SMOOTHING_TAU` (:class:`Smoothed`): the steps are gone, the lag is not added.  Stats:
+one over :data:`SMOOTHING_TAU` (:class:`Smoothed`): steps of 11 mm become under 2 mm, and no lag is added (the
+unit test's flight at 0.8 m/s stays within 8 mm of the truth, 0.001 mm on average over 30 s).  Stats:
 ``in`` samples received, ``out`` poses published, ``requests`` rate requests sent.
 """
 
@@ -77,26 +78,23 @@ class Smoothed:
 
     def __init__(self) -> None:
         self._t_ns: int | None = None
-        self._p = (0.0, 0.0, 0.0)
+        self._p: wire.Vec3 = (0.0, 0.0, 0.0)
 
     def update(self, t_ns: int, p: wire.Vec3, v: wire.Vec3) -> wire.Vec3:
         """The position at ``t_ns`` given the sample ``p`` and velocity ``v`` that arrived then."""
-        dt = (t_ns - self._t_ns) * 1e-9 if self._t_ns is not None else math.inf
-        if not 0.0 <= dt <= SMOOTHING_RESET_S:
-            self._t_ns, self._p = t_ns, p
-            return p
-        ahead = tuple(x + vx * dt for x, vx in zip(self._p, v, strict=True))
-        if math.dist(ahead, p) > SMOOTHING_RESET_M:  # a jump (PX4 booted again): no smoothing across it
-            self._t_ns, self._p = t_ns, p
-            return p
-        a = min(1.0, dt / SMOOTHING_TAU)
-        self._t_ns = t_ns
-        self._p = (
-            ahead[0] + a * (p[0] - ahead[0]),
-            ahead[1] + a * (p[1] - ahead[1]),
-            ahead[2] + a * (p[2] - ahead[2]),
-        )
-        return self._p
+        last, self._t_ns = self._t_ns, t_ns
+        if last is not None and 0.0 <= (dt := (t_ns - last) * 1e-9) <= SMOOTHING_RESET_S:
+            ahead = (self._p[0] + v[0] * dt, self._p[1] + v[1] * dt, self._p[2] + v[2] * dt)
+            if math.dist(ahead, p) <= SMOOTHING_RESET_M:
+                a = min(1.0, dt / SMOOTHING_TAU)
+                self._p = (
+                    ahead[0] + a * (p[0] - ahead[0]),
+                    ahead[1] + a * (p[1] - ahead[1]),
+                    ahead[2] + a * (p[2] - ahead[2]),
+                )
+                return self._p
+        self._p = p  # the first sample, after a pause, or a jump (PX4 booted again): no smoothing across
+        return p
 
 
 @dataclass(frozen=True, slots=True)
