@@ -254,9 +254,10 @@ def within(px4: float, sim: float, figure: Figure) -> bool:
 def bounds(px4: float, flights: Sequence[float], figure: Figure) -> tuple[float, float]:
     """Where the simulation's figure may lie when PX4 varies from flight to flight: from the least to the
     most of PX4's figures (this run's ``px4`` and its earlier ``flights``), each end widened by its
-    tolerance."""
+    tolerance; never below zero for a figure PX4 never gave negative (a distance, a time)."""
     lo, hi = min(px4, *flights), max(px4, *flights)
-    return lo - figure.tolerance(lo), hi + figure.tolerance(hi)
+    least = lo - figure.tolerance(lo)
+    return (max(0.0, least) if lo >= 0 else least), hi + figure.tolerance(hi)
 
 
 def verdict(px4: float, sim: float, figure: Figure, flights: Sequence[float] | None) -> tuple[bool, str]:

@@ -23,6 +23,8 @@ def test_a_figure_px4_varies_is_judged_against_the_spread_of_its_flights() -> No
     assert ok and words == "8.6–32.9: PX4's 5 flights, ± tolerance", words
     assert verdict(16.9, 33.0, coast, (21.3, 13.6, 26.3, 21.3))[0] is False
     assert verdict(16.9, 8.5, coast, (21.3, 13.6, 26.3, 21.3))[0] is False
+    # A spread whose least figure is within its tolerance of zero starts at zero, not below it.
+    assert bounds(4.1, (13.7, 8.2), coast) == (0.0, 13.7 + 5.0)
     # This run's PX4 figure widens the spread as an earlier flight does.
     assert verdict(40.0, 45.0, coast, (21.3, 13.6))[0] is True
 
