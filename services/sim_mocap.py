@@ -136,7 +136,16 @@ def _simulate(
             try:
                 vehicle = keys.parse(item.key).drone or ""
                 pose = item.payload
-                if scene.update(vehicle, pose.p, pose.q, pose.ok, item.t_recv + wall_to_perf):
+                arrived = item.t_recv + wall_to_perf
+                if scene.update(
+                    vehicle,
+                    pose.p,
+                    pose.q,
+                    pose.ok,
+                    arrived,
+                    stamp_ns=pose.t,
+                    v_ned=pose.v if pose.vok else None,
+                ):
                     svc.stats.count("truth")
             except (FrameError, InvalidName) as exc:
                 svc.reject("truth", f"{item.key}: {exc}")

@@ -19,8 +19,10 @@ from arena_common.sim.natnet_motive import NatNetServerError, TickClock
 __all__ = [
     "ANGLE_NOISE_PER_M",
     "CAMERA_LATENCY",
+    "OFFSET_WINDOW",
     "SOFTWARE_LATENCY",
     "TRUTH_TIMEOUT",
+    "SampleClock",
     "SceneCounters",
     "SimScene",
 ]
@@ -42,16 +44,45 @@ _UNTRACKED_POSE: tuple[natnet.Vec3, natnet.Quat] = ((0.0, 0.0, 0.0), (0.0, 0.0, 
 # ------------------------------------------------------------------------------------------------------------
 
 
+#: How long the least delay of a body's true poses is remembered (seconds): what
+#: :class:`SampleClock` takes as the offset between the truth's clock and this one.
+OFFSET_WINDOW = 2.0
+
+
+@dataclass(slots=True)
+class SampleClock:
+    """Places a truth source's own timestamps on ``perf_counter_ns``: the offset between the two clocks is
+    the least ``arrival − stamp`` of the last :data:`OFFSET_WINDOW` seconds (the sample that was least
+    delayed in transit), so that poses delayed together (a simulation catching up after a stall, a busy
+    bus) keep their own instants instead of all taking their arrival's. A stamp is never placed after its
+    arrival (a clock running fast, another host's skew)."""
+
+    window_ns: int = round(OFFSET_WINDOW * 1e9)
+    _least: deque[tuple[int, int]] = field(default_factory=deque)  # (arrival, offset), offsets increasing
+
+    def place(self, stamp_ns: int, arrival_ns: int) -> int:
+        """The ``perf_counter_ns`` instant of a pose stamped ``stamp_ns`` that arrived at ``arrival_ns``."""
+        offset = arrival_ns - stamp_ns
+        least = self._least
+        while least and least[-1][1] >= offset:
+            least.pop()
+        least.append((arrival_ns, offset))
+        while least[0][0] < arrival_ns - self.window_ns:
+            least.popleft()
+        return min(stamp_ns + least[0][1], arrival_ns)
+
+
 @dataclass(slots=True)
 class _Body:
     name: str
     id: int
     key: str
-    # (perf_counter ns, Motive position, Motive quaternion x y z w, tracked)
-    history: deque[tuple[int, natnet.Vec3, natnet.Quat, bool]] = field(
+    # (perf_counter ns, Motive position, Motive quaternion x y z w, tracked, Motive velocity m/s)
+    history: deque[tuple[int, natnet.Vec3, natnet.Quat, bool, natnet.Vec3]] = field(
         default_factory=lambda: deque(maxlen=64)
     )
     occlusions: list[tuple[int, int]] = field(default_factory=list)
+    clock: SampleClock = field(default_factory=SampleClock)
 
 
 @dataclass(slots=True)
@@ -70,7 +101,9 @@ class SimScene:
 
     Feed true poses (arena NED/FRD) with :meth:`update`; :meth:`frame` builds the frame transmitted at
     ``transmit_ns``: the camera mid-exposure is ``camera_latency + software_latency`` earlier and each body's
-    pose is its latest true pose at that instant, converted to Motive's frame with
+    pose is its latest true pose at that instant carried on by its velocity to that instant (a pose the
+    cameras see while the truth is late, as a real vehicle keeps moving while its simulation stalls),
+    converted to Motive's frame with
     ``transform.inverse_pose`` and blurred by ``noise_m`` (Gaussian per axis, and a proportional attitude
     noise, :data:`ANGLE_NOISE_PER_M`). A body is streamed untracked (bit 0 clear, zero pose) before its
     first true pose, when the true pose says ``ok=False``, when it is older than ``truth_timeout``, or while
@@ -161,19 +194,31 @@ class SimScene:
         q_frd: Sequence[float],
         ok: bool = True,
         t_ns: int | None = None,
+        *,
+        stamp_ns: int | None = None,
+        v_ned: Sequence[float] | None = None,
     ) -> bool:
-        """Record a true pose of body ``key`` seen at ``t_ns`` (``perf_counter_ns``; default now).
+        """Record a true pose of body ``key`` that arrived at ``t_ns`` (``perf_counter_ns``; default now).
 
-        Returns ``False`` for a key not in the scene. Raises :class:`~arena_common.geometry.frames.FrameError` for a
-        non-finite position or a non-unit quaternion.
+        ``stamp_ns`` is the pose's own time on its source's clock (any epoch): the pose is then placed at
+        that instant (:class:`SampleClock`), not at its arrival. ``v_ned`` is its velocity (m/s, arena
+        NED), which carries it on to the instant a frame images it. Returns ``False`` for a key not in the
+        scene. Raises :class:`~arena_common.geometry.frames.FrameError` for a non-finite position or a
+        non-unit quaternion.
         """
         body = self._bodies.get(key)
         if body is None:
             return False
         p, (w, x, y, z) = self.transform.inverse_pose(p_ned, q_frd)
+        v: natnet.Vec3 = (0.0, 0.0, 0.0)
+        if v_ned is not None:
+            ahead = self.transform.inverse_position([a + b for a, b in zip(p_ned, v_ned, strict=True)])
+            v = (ahead[0] - p[0], ahead[1] - p[1], ahead[2] - p[2])
         t = time.perf_counter_ns() if t_ns is None else int(t_ns)
         with self._lock:
-            body.history.append((t, p, (x, y, z, w), bool(ok)))
+            if stamp_ns is not None:
+                t = body.clock.place(int(stamp_ns), t)
+            body.history.append((t, p, (x, y, z, w), bool(ok), v))
         self.counters.updates += 1
         return True
 
@@ -223,7 +268,10 @@ class SimScene:
             else:
                 self.counters.untracked += 1
             return RigidBody(body.id, *_UNTRACKED_POSE, 0.0, False, 0)
-        _, (px, py, pz), q, _ = sample
+        t, (px, py, pz), q, _, (vx, vy, vz) = sample
+        if mid_ns > t:
+            dt = (mid_ns - t) * 1e-9
+            px, py, pz = px + vx * dt, py + vy * dt, pz + vz * dt
         if self.noise_m:
             gauss, sigma = self._rng.gauss, self.noise_m
             px, py, pz = px + gauss(0.0, sigma), py + gauss(0.0, sigma), pz + gauss(0.0, sigma)
