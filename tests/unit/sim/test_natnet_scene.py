@@ -39,8 +39,15 @@ def _fly(stamped: bool) -> tuple[list[float], JumpGate, float]:
         while j < len(truths) and _arrival(truths[j]) <= now:
             t = truths[j]
             north = SPEED * t * 1e-9
-            extra = {"stamp_ns": t - EPOCH, "v_ned": (SPEED, 0.0, 0.0)} if stamped else {}
-            scene.update("d1", (north, 0.0, -1.0), (1.0, 0.0, 0.0, 0.0), True, _arrival(t), **extra)  # type: ignore[arg-type]
+            scene.update(
+                "d1",
+                (north, 0.0, -1.0),
+                (1.0, 0.0, 0.0, 0.0),
+                True,
+                _arrival(t),
+                stamp_ns=t - EPOCH if stamped else None,
+                v_ned=(SPEED, 0.0, 0.0) if stamped else None,
+            )
             j += 1
         frame = scene.frame(k, k / FRAME_HZ, now, clock)
         assert frame is not None

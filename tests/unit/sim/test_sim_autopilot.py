@@ -111,6 +111,14 @@ class Gcs:
     def texts_with(self, word: str) -> list[str]:
         return [t for t in self.statustexts if word.lower() in t.lower()]
 
+    def seen(self) -> str:
+        """Where the vehicle is, for a failure's message: its mode and height as heard here, its failsafe
+        and the simulated time it skipped (a busy machine), the STATUSTEXTs it sent."""
+        mode = self.mode if self.heartbeat is not None else "no heartbeat yet"
+        ap = self.ap
+        inside = f", failsafe {ap.failsafe}, {ap.skipped_time_s:.2f} s skipped" if ap is not None else ""
+        return f"{mode} at {self.height:.2f} m{inside}, texts {self.statustexts}"
+
     # --- traffic
     def send_mocap(self) -> None:
         assert self.ap is not None
@@ -215,7 +223,9 @@ class Gcs:
             if predicate():
                 return self.clock.now() - start
             if now >= deadline:
-                raise AssertionError(f"timed out after {timeout} s (simulated) waiting for {what}")
+                raise AssertionError(
+                    f"timed out after {timeout} s (simulated) waiting for {what}: {self.seen()}"
+                )
 
     def run_for(self, seconds: float) -> None:
         end = self.clock.now() + seconds
