@@ -9,7 +9,9 @@ Each ``autopilot = "sim"`` vehicle of the config (or each one named with ``--veh
 the wall clock at ``--speed 1``.  A vehicle whose config names a ``signing_key_file`` signs its MAVLink
 and refuses unsigned or replayed input, as PX4 with signing required does.  ``--estimate-lag`` passes
 each estimate through a first-order lag (PX4 v1.16's trailed the truth by ~0.16 s with its default vision
-noise, see docs/px4.md; 0, the default, hands on the filter's estimate as it is).
+noise, see docs/px4.md; 0, the default, hands on the filter's estimate as it is).  Simulated time a
+vehicle skips because its loop fell behind the clock (a busy machine) is counted (``skipped_ms.<name>``
+in the service's stats) and logged as a warning.
 """
 
 from __future__ import annotations
@@ -123,6 +125,31 @@ def _truth_publisher(
     return on_tick
 
 
+def _skip_reporter(
+    autopilots: Sequence[SimAutopilot], count: Callable[[str, int], None], warn: Callable[..., None]
+) -> Callable[[], None]:
+    """A per-round callback that counts (``skipped_ms.<name>``) and logs the simulated time each vehicle
+    skipped because its loop could not keep up with the wall clock (a busy machine): a skip is a gap in
+    its flight that processes on the wall clock see, never a silent one."""
+    seen = {ap.name: 0.0 for ap in autopilots}
+
+    def after_step() -> None:
+        for ap in autopilots:
+            skipped = ap.skipped_time_s - seen[ap.name]
+            if skipped > 0.0:
+                seen[ap.name] = ap.skipped_time_s
+                count(f"skipped_ms.{ap.name}", round(skipped * 1000))
+                warn(
+                    "%s: the simulation could not keep up with the clock (a busy machine): skipped %.0f ms "
+                    "of its flight (%.0f ms in all)",
+                    ap.name,
+                    skipped * 1000,
+                    ap.skipped_time_s * 1000,
+                )
+
+    return after_step
+
+
 def main(
     cfg: ArenaConfig,
     options: BusOptions | None = None,
@@ -165,7 +192,11 @@ def main(
                 ),
                 clock.speed,
             )
-            run_autopilots(autopilots, stop=svc.stop)
+            run_autopilots(
+                autopilots,
+                stop=svc.stop,
+                after_step=_skip_reporter(autopilots, svc.stats.count, svc.log.warning),
+            )
         finally:
             for ap in autopilots:
                 ap.close()

@@ -21,9 +21,9 @@ from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig, SimSpec
 from arena_common.core.errors import ConfigError
 from arena_common.mavlink import px4
-from arena_common.sim.autopilot import SimAutopilotError, SimClock
+from arena_common.sim.autopilot import SimAutopilot, SimAutopilotError, SimClock
 from services import sim_vehicle
-from tests.unit.sim.test_sim_autopilot import ARENA, Gcs
+from tests.unit.sim.test_sim_autopilot import ARENA, Gcs, free_port
 
 SPEED = 4.0
 
@@ -204,3 +204,28 @@ def test_cli_reports_bad_input(arena_config: Callable[..., ArenaConfig], tmp_pat
     result = runner.invoke(app, ["--config", str(tmp_path / "arena.toml"), "--speed", "0"])
     assert result.exit_code == 2 and "speed" in result.output
     assert "--speed" in runner.invoke(app, ["--help"]).output
+
+
+def test_a_vehicle_that_skips_simulated_time_is_counted_and_logged() -> None:
+    # A loop held back longer than MAX_CATCH_UP_S (a busy machine) skips that time: the service says so.
+    ap = SimAutopilot(f"udpout:127.0.0.1:{free_port()}", 1, clock=SimClock(1.0), name="d1")
+    counts: dict[str, int] = {}
+    warnings: list[str] = []
+    report = sim_vehicle._skip_reporter(
+        [ap],
+        lambda name, n: counts.__setitem__(name, counts.get(name, 0) + n),
+        lambda fmt, *args: warnings.append(fmt % args),
+    )
+    try:
+        ap.step()
+        report()
+        assert counts == {} and warnings == []  # nothing skipped yet: nothing said
+        time.sleep(SimAutopilot.MAX_CATCH_UP_S + 0.25)
+        ap.step()
+        report()
+        report()  # a skip is reported once
+        assert ap.skipped_time_s >= 0.2
+        assert counts == {"skipped_ms.d1": round(ap.skipped_time_s * 1000)}
+        assert len(warnings) == 1 and warnings[0].startswith("d1: the simulation could not keep up"), warnings
+    finally:
+        ap.close()
