@@ -10,6 +10,7 @@ test's temporary directory.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
@@ -30,11 +31,9 @@ from arena_common import Arena
 from arena_common.core import keys, wire
 from arena_common.core.config import ArenaConfig
 from arena_common.geometry.frames import quat_yaw, wrap_angle
-from arena_common.mavlink.link import mavlink2
 from arena_common.runtime.options import read_config
 from arena_common.runtime.process import child_setup
 from arena_common.runtime.px4_sitl import MAX_INSTANCE, Px4Sitl, Px4SitlError, instance_busy, is_true
-from arena_common.sim.linkdelay import LinkDelay
 from services.px4_sitl import boot_params
 from tests.conftest import REPO, free_port, wait_for
 
@@ -137,6 +136,21 @@ def write_px4_config(
     return read_config(path)
 
 
+def _spawn(argv: list[str], log: Path) -> subprocess.Popen[bytes]:
+    """Start ``argv`` from the checkout, its output appended to ``log``; it dies with the test run (a run
+    that is killed takes its services with it: they had outlived it)."""
+    with open(log, "ab") as out:
+        return subprocess.Popen(
+            argv,
+            cwd=REPO,
+            env={**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"},
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            preexec_fn=child_setup(os.getpid(), signal.SIGTERM),
+        )
+
+
 @dataclass
 class _Proc:
     argv: list[str]
@@ -157,7 +171,7 @@ class Px4Stack:
     keep_log: bool = False  # PX4 writes its ULog (~1 MB/s): :meth:`ulog` after :meth:`stop_px4`
     # A slow link (delay, jitter: s each way) between a vehicle's PX4 and its gateway: a relay, as a radio
     links: Mapping[str, tuple[float, float]] = field(default_factory=dict)
-    relays: dict[str, LinkDelay] = field(default_factory=dict)
+    relays: dict[str, subprocess.Popen[bytes]] = field(default_factory=dict)  # tests.px4.radio
     _files: list[IO[str]] = field(default_factory=list)
 
     # -- PX4 ----------------------------------------------------------------------------------------------
@@ -183,20 +197,24 @@ class Px4Stack:
         return self.boot_s[vehicle]
 
     def _relay(self, vehicle: str, px4: Px4Sitl) -> None:
-        """Put the vehicle's slow link between its PX4 and its gateway, before the gateway starts: the
-        relay speaks to PX4 first, so PX4 (which answers only its first peer) sends everything through it."""
+        """Put the vehicle's slow link between its PX4 and its gateway, before the gateway starts, in a
+        process of its own (:mod:`tests.px4.radio`; output in ``radio.<vehicle>.log``): the relay speaks to
+        PX4 first, so PX4 (which answers only its first peer) sends everything through it."""
         delay, jitter = self.links[vehicle]
-        relay = LinkDelay(
-            ("127.0.0.1", px4.ports.offboard),
-            delay,
-            jitter,
-            seed=px4.ports.instance,
-            vehicle=("127.0.0.1", px4.ports.px4_offboard),
+        log = self.logs / f"radio.{vehicle}.log"
+        argv = [sys.executable, "-m", "tests.px4.radio", "--gateway-port", str(px4.ports.offboard)]
+        argv += ["--px4-port", str(px4.ports.px4_offboard), "--delay", str(delay), "--jitter", str(jitter)]
+        self.relays[vehicle] = _spawn([*argv, "--seed", str(px4.ports.instance)], log)
+        wait_for(
+            lambda: self.relay_counts(vehicle), 10.0, 0.05, f"{vehicle}: the radio relay to speak to PX4"
         )
-        self.relays[vehicle] = relay
-        mav = mavlink2.MAVLink(None, srcSystem=255, srcComponent=mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER)
-        beat = mav.heartbeat_encode(mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 0)
-        relay.poke(beat.pack(mav))
+
+    def relay_counts(self, vehicle: str) -> dict[str, int]:
+        """The vehicle's radio relay's last counts (``forwarded``, ``dropped``, ``send_errors``); empty
+        before its first report."""
+        lines = (self.logs / f"radio.{vehicle}.log").read_text(errors="replace").splitlines()
+        reports = [line for line in lines if line.startswith("{")]
+        return dict(json.loads(reports[-1])) if reports else {}
 
     def stop_px4(self, vehicle: str) -> None:
         """Stop ``vehicle``'s PX4 and keep its working directory (its ULog) until :meth:`close`."""
@@ -220,17 +238,7 @@ class Px4Stack:
         if p.proc is not None and p.proc.poll() is None:
             return p.proc
         p.stopped = False
-        with open(p.log, "ab") as log:
-            p.proc = subprocess.Popen(
-                p.argv,
-                cwd=REPO,
-                env={**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"},
-                stdin=subprocess.DEVNULL,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                # A test run that is killed takes its services with it (they had outlived it).
-                preexec_fn=child_setup(os.getpid(), signal.SIGTERM),
-            )
+        p.proc = _spawn(p.argv, p.log)
         return p.proc
 
     def stop(self, name: str, timeout: float = 15.0) -> int | None:
@@ -290,7 +298,8 @@ class Px4Stack:
         for px4 in self.px4.values():
             px4.stop()
         for relay in self.relays.values():
-            relay.close()
+            relay.terminate()
+            relay.wait(5)
         for f in self._files:
             f.close()
 
@@ -519,13 +528,23 @@ class FlightRecord:
         self.truth: list[wire.Pose] = []
         self.states: list[wire.State] = []
         self.phases: list[tuple[str, int]] = []
+        self._closed = False
+
+    def close(self) -> None:
+        """Stop listening (what was collected stays): a record of a finished flight costs nothing more."""
+        self.collect()
+        self._closed = True
+        self._truth.close()
+        self._state.close()
 
     def phase(self, name: str) -> None:
         """A phase starts now (it lasts until the next one)."""
         self.phases.append((name, wire.now_ns()))
 
     def collect(self) -> None:
-        """Take what arrived so far."""
+        """Take what arrived so far (nothing more once closed)."""
+        if self._closed:
+            return
         self.truth += [i.payload for i in self._truth.channel.drain() if isinstance(i.payload, wire.Pose)]
         self.states += [i.payload for i in self._state.channel.drain() if isinstance(i.payload, wire.State)]
 

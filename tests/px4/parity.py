@@ -206,6 +206,13 @@ def _land(v: Vehicle, record: FlightRecord, out: dict[str, float]) -> None:
     out["touchdown_s"] = (down - t0) / 1e9 if down is not None else math.nan
 
 
+def _back(v: Vehicle, record: FlightRecord, out: dict[str, float]) -> None:
+    """Fly back over where the flight took off (its first true pose), so that a program flown again in a
+    row starts from the same place: not a figure."""
+    first = record.track(0)[0]
+    v.goto(first.p[0], first.p[1], -HEIGHT, timeout=30)
+
+
 Manoeuvre = Callable[[Vehicle, FlightRecord, dict[str, float]], None]
 
 #: The program, in order: each manoeuvre is a phase of the flight record and adds its figures.
@@ -218,21 +225,27 @@ MANOEUVRES: dict[str, Manoeuvre] = {
     "step": _step,
     "attitude": _attitude,
     "land": _land,
+    "back": _back,
 }
+#: The parity program: every manoeuvre the client offers, in order.
+PROGRAM = ("takeoff", "hover", "goto", "trajectory", "velocity", "step", "attitude", "land")
 IN_FLIGHT = ("hover", "goto", "trajectory", "velocity", "step")  # the estimate is judged over these
 
 
 def fly(
-    arena: Arena, name: str, record: FlightRecord, manoeuvres: Sequence[str] = tuple(MANOEUVRES)
+    arena: Arena, name: str, record: FlightRecord, manoeuvres: Sequence[str] = PROGRAM
 ) -> dict[str, float]:
     """Fly ``manoeuvres`` (of :data:`MANOEUVRES`; takeoff first, land last) on ``name`` (on the ground,
     vision fused) and return their figures by name, with the estimate's error over the flight."""
     v = arena.vehicle(name)
     out: dict[str, float] = {}
-    for manoeuvre in manoeuvres:
-        record.phase(manoeuvre)
-        MANOEUVRES[manoeuvre](v, record, out)
-    record.phase("ground")
+    try:
+        for manoeuvre in manoeuvres:
+            record.phase(manoeuvre)
+            MANOEUVRES[manoeuvre](v, record, out)
+        record.phase("ground")
+    finally:
+        record.close()
     estimate = [record.figure(phase) for phase in IN_FLIGHT if phase in manoeuvres]
     out["estimate_p50_cm"] = 100 * float(np.median([f.horizontal_p50 for f in estimate]))
     out["estimate_max_cm"] = 100 * max(f.horizontal_max for f in estimate)
