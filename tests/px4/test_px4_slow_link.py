@@ -11,8 +11,9 @@ PX4 varies from one flight to the next by more than 20 % (docs/px4.md), so each 
 in one boot of PX4, and their medians are compared:
 
 - direct, PX4's TIMESYNC converged (it takes the gateway's stamps), as `arena px4 setup` leaves it;
-- slow link, ``EKF2_EV_DELAY`` left at 0: the estimate trails the truth by the link's delay more, and PX4
-  may lose it and land in failsafe (which ends that link's flights, counted as its outcome);
+- slow link, ``EKF2_EV_DELAY`` left at 0: the estimate trails the truth by the link's delay more.  A
+  failsafe of PX4's own ends this link's flights and counts as its outcome (seen only while the relay
+  ran inside the test's process: docs/px4.md);
 - slow link, ``EKF2_EV_DELAY`` at what the check wants from the measured link.
 
 The table of medians and ranges is printed (docs/px4.md gives it), with whether the compensated hover and
@@ -114,7 +115,7 @@ def test_px4_over_a_slow_link_with_and_without_compensation(px4_arena: PX4ArenaF
     want = float(row["want"])
     assert not row["ok"] and float(row["have"]) == 0.0, row
     assert 25.0 <= want <= 60.0, want  # half a round trip of 40-80 ms, plus a pose's age
-    flights(stack, arena, UNCOMPENSATED, may_fail=True)  # PX4 may lose its estimate here and land in failsafe
+    flights(stack, arena, UNCOMPENSATED, may_fail=True)
     assert not stack.dead(), stack.dead()
     stack.close()
 
