@@ -94,6 +94,14 @@ GatewayHosts = Annotated[
         "0: one per vehicle, as deployed.",
     ),
 ]
+GatewayVision = Annotated[
+    str,
+    typer.Option(
+        "--gateway-vision",
+        help="With --gateway-hosts: their vision as one message per mocap frame (frame) or on each "
+        "vehicle's own key (vehicle).",
+    ),
+]
 Out = Annotated[Path, typer.Option("--out", "-o", help="Directory of the JSON results.")]
 Docs = Annotated[
     bool | None,
@@ -137,6 +145,7 @@ def bench(
     fleet: Fleet = None,
     growth: Growth = None,
     gateway_hosts: GatewayHosts = 0,
+    gateway_vision: GatewayVision = "frame",
     out: Out = Path("bench-results"),
     docs: Docs = None,
     docs_file: DocsFile = Path("docs/performance.md"),
@@ -171,6 +180,7 @@ def bench(
         changes["vehicle_mode"] = vehicle_mode
     if gateway_hosts:
         changes["gateway_hosts"] = gateway_hosts
+        changes["gateway_vision"] = gateway_vision
     if fleet is not None:
         changes["fleet"] = fleet
     elif vehicles is not None:  # `-n 1` asks for one vehicle: the fleet of 50 only when asked for too

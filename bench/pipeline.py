@@ -89,6 +89,7 @@ class RunSettings:
     # Processes the gateways run in: 0, one per vehicle (as deployed); K, the vehicles split over K
     # processes of bench.gateway_host (the per-host design of issue #35, measured)
     gateway_hosts: int = 0
+    gateway_vision: str = "frame"  # their vision: one message per mocap frame, or each vehicle's own key
 
 
 @dataclass
@@ -420,7 +421,10 @@ class _ArenaRun:
             return
         for i in range(k):
             vehicles = [a for v in self.names[i::k] for a in ("--vehicle", v)]
-            self._spawn(f"gateway-host.{i}", "gateway", "bench.gateway_host", *self.common, *vehicles)
+            vision = ("--vision", self.settings.gateway_vision)
+            self._spawn(
+                f"gateway-host.{i}", "gateway", "bench.gateway_host", *self.common, *vehicles, *vision
+            )
 
     def _decimators(self, vision_rate: float) -> None:
         if self.decimate == "transform":
@@ -508,7 +512,10 @@ class _ArenaRun:
         )
         keys_ = ("frames", "frame_gaps", "substituted", "unmatched_time", "clock_residual_us_p99")
         if (k := self.gateway_hosts) > 0:
-            point.notes.append(f"gateways in {k} process{'es' if k > 1 else ''} (bench.gateway_host)")
+            point.notes.append(
+                f"gateways in {k} process{'es' if k > 1 else ''} (bench.gateway_host), "
+                f"vision per {self.settings.gateway_vision}"
+            )
         point.notes.append(
             f"vision {vision_rate:g} Hz, "
             + ", ".join(

@@ -115,6 +115,7 @@ class BenchOptions:
     # that the cost per vehicle reads across fleet sizes (() or 0: skip)
     growth: tuple[int, ...] = (1, 10, 20, 50)
     gateway_hosts: int = 0  # processes the fleet's gateways run in (0: one per vehicle, as deployed)
+    gateway_vision: str = "frame"  # how those processes get vision: one message per frame, or per vehicle
     quick: bool = False
 
     @classmethod
@@ -158,6 +159,8 @@ class BenchOptions:
             raise BenchError(f"growth vehicle counts must be within 1..200, got {self.growth}")
         if self.fleet and not 1 <= self.fleet <= 200:
             raise BenchError(f"the fleet must be within 1..200 vehicles, got {self.fleet}")
+        if self.gateway_vision not in ("frame", "vehicle"):
+            raise BenchError(f"--gateway-vision must be frame or vehicle, got {self.gateway_vision!r}")
         if self.gateway_hosts < 0:
             raise BenchError(f"--gateway-hosts must not be negative, got {self.gateway_hosts}")
         if self.vehicle_mode not in ("", "client", "same"):
@@ -482,6 +485,7 @@ def _fleet_settings(options: BenchOptions, settings: RunSettings) -> RunSettings
         idle=max(settings.idle, 2.0),
         vehicle_mode=options.vehicle_mode or "client",
         gateway_hosts=options.gateway_hosts,
+        gateway_vision=options.gateway_vision,
     )
 
 

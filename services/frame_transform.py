@@ -105,6 +105,8 @@ def main(
                 svc.stats.count("out")
                 if not pose.ok:
                     svc.stats.count("invalid")
+            if decimators is not None:
+                decimators.end_frame(frame.fn)
             if fleet.tick(time.monotonic_ns()) is not None:
                 svc.stats.count("fleet")
             svc.stats.latency((time.time_ns() - item.t_recv) * 1e-9)

@@ -352,6 +352,29 @@ VECTORS: tuple[Vector, ...] = (
         ),
         "Two vehicles: d1 flying north at 0.4 m/s toward d2, which hovers.",
     ),
+    Vector(
+        "vision_frame_two",
+        keys.VISIONS,
+        wire.VisionFrame(
+            fn=123456,
+            b=(
+                wire.VisionBody(
+                    "d1",
+                    _T,
+                    (-1.0, 0.0, -1.0),
+                    (1.0, 0.0, 0.0, 0.0),
+                    True,
+                    123456,
+                    (0.4, 0.0, 0.0),
+                    vok=True,
+                    tp=_T + 1_200_000,
+                ),
+                wire.VisionBody("d2", _T, (0.5, 0.25, -0.05), (1.0, 0.0, 0.0, 0.0), False, 123456),
+            ),
+            tp=_T + 1_300_000,
+        ),
+        "One mocap frame's vision: d1 flying north at 0.4 m/s, d2 lost by Motive (never sent to its autopilot).",
+    ),
 )
 
 

@@ -70,11 +70,14 @@ def owners(cfg: ArenaConfig) -> dict[str, set[str]]:
             own(f"arena/{v}/{leaf}", None)
     own("arena/sys/frames", None)
     own("arena/sys/fleet", None)
+    own("arena/sys/vision", None)
     for h in cfg.hosts.values():
         if "mocap" in h.services:
             own("arena/sys/frames", h.name)
         if "transform" in h.services:
             own("arena/sys/fleet", h.name)
+            if cfg.pipeline.decimate == "transform":
+                own("arena/sys/vision", h.name)
         for v in cfg.vehicles:
             if "mocap" in h.services:
                 own(f"arena/{v}/mocap", h.name)

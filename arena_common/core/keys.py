@@ -65,6 +65,13 @@ KEYS: tuple[KeySpec, ...] = (
         "stream",
         "Every vehicle's rigid body of one mocap frame (Motive frame), one message per frame.",
     ),
+    KeySpec(
+        "arena/sys/vision",
+        "VisionFrame",
+        "stream",
+        "Every vehicle's vision pose of one mocap frame (the transform decimating), one message per frame: "
+        "what a gateway serving several vehicles reads.",
+    ),
     KeySpec("arena/sys/bodies/<body>", "MocapPose", "stream", "Rigid bodies no vehicle claims (optional)."),
     KeySpec(
         "arena/sys/fleet",
@@ -194,6 +201,7 @@ def clock(host: str, service: str) -> str:
 TIME = f"{ROOT}/sys/time"
 FRAMES = f"{ROOT}/sys/frames"
 FLEET = f"{ROOT}/sys/fleet"
+VISIONS = f"{ROOT}/sys/vision"
 CLOCK_ALL = f"{ROOT}/sys/clock/**"
 ALIVE_ALL = f"{ROOT}/sys/alive/**"
 STATS_ALL = f"{ROOT}/sys/stats/**"
@@ -224,6 +232,8 @@ def parse(key: str) -> ParsedKey:
             return ParsedKey("rec", extra=parts[3])
         if len(parts) == 3 and parts[2] in ("time", "frames", "fleet"):
             return ParsedKey(parts[2])
+        if len(parts) == 3 and parts[2] == "vision":
+            return ParsedKey("visions")  # every vehicle's vision of a frame (a vehicle's own: "vision")
         raise InvalidName(f"unknown system key: {key!r}")
     drone = validate_name(parts[1])
     if len(parts) == 3 and parts[2] in (

@@ -196,27 +196,92 @@ class MocapFrame(Payload, frozen=True):
         )
 
 
+# A pose's fields, shared by :class:`Pose` and each :class:`VisionBody` of a :class:`VisionFrame`.
+_PoseT = Annotated[int, _int("Measurement time", unit="ns")]
+_PoseP = Annotated[Vec3, _doc("Position north, east, down", unit="m")]
+_PoseQ = Annotated[Quat, _doc("Attitude quaternion w, x, y, z, body FRD to arena NED")]
+_PoseOk = Annotated[bool, _doc("Pose valid (tracked); never send an invalid pose to an autopilot")]
+_PoseFn = Annotated[int, _int("Motive frame number (0 when not from Motive)", lo=0)]
+_PoseV = Annotated[Vec3, _doc("Velocity north, east, down", unit="m/s")]
+_PoseW = Annotated[Vec3, _doc("Angular velocity, body FRD", unit="rad/s")]
+_PoseVok = Annotated[bool, _doc("Velocities valid")]
+_PoseRc = Annotated[
+    int, _int("Reset counter: changes when the pose jumps (re-acquired, recalibrated)", lo=0, hi=255)
+]
+
+
 @payload
 class Pose(Payload, frozen=True):
     """A pose in the arena frame: NED position, FRD body attitude, with estimated velocities."""
 
     SCHEMA = "Pose"
     DOC = "Pose in the arena frame (NED position, FRD body quaternion) with finite-difference velocities."
-    t: Annotated[int, _int("Measurement time", unit="ns")]
-    p: Annotated[Vec3, _doc("Position north, east, down", unit="m")]
-    q: Annotated[Quat, _doc("Attitude quaternion w, x, y, z, body FRD to arena NED")]
-    ok: Annotated[bool, _doc("Pose valid (tracked); never send an invalid pose to an autopilot")]
-    fn: Annotated[int, _int("Motive frame number (0 when not from Motive)", lo=0)] = _always(0)
-    v: Annotated[Vec3, _doc("Velocity north, east, down", unit="m/s")] = _always((0.0, 0.0, 0.0))
-    w: Annotated[Vec3, _doc("Angular velocity, body FRD", unit="rad/s")] = _always((0.0, 0.0, 0.0))
-    vok: Annotated[bool, _doc("Velocities valid")] = _always(False)
-    rc: Annotated[
-        int, _int("Reset counter: changes when the pose jumps (re-acquired, recalibrated)", lo=0, hi=255)
-    ] = _always(0)
-    tp: Annotated[int, _int("Publish time", unit="ns")] = _always(0)
+    t: _PoseT
+    p: _PoseP
+    q: _PoseQ
+    ok: _PoseOk
+    fn: _PoseFn = _always(0)
+    v: _PoseV = _always((0.0, 0.0, 0.0))
+    w: _PoseW = _always((0.0, 0.0, 0.0))
+    vok: _PoseVok = _always(False)
+    rc: _PoseRc = _always(0)
+    tp: _Published = _always(0)
 
     def check(self) -> tuple[str, str] | None:
         return super().check() or (_quat_problem(self.q, "q") if self.ok else None)
+
+
+@part
+class VisionBody(Payload, frozen=True):
+    """One vehicle's vision pose in a :class:`VisionFrame`: the :class:`Pose` its ``vision`` key carries,
+    with the vehicle's name."""
+
+    SCHEMA = "VisionBody"
+    DOC = "One vehicle's vision pose (arena frame) of one mocap frame."
+    n: Annotated[Str, _doc("The vehicle")]
+    t: _PoseT
+    p: _PoseP
+    q: _PoseQ
+    ok: _PoseOk
+    fn: _PoseFn = _always(0)
+    v: _PoseV = _always((0.0, 0.0, 0.0))
+    w: _PoseW = _always((0.0, 0.0, 0.0))
+    vok: _PoseVok = _always(False)
+    rc: _PoseRc = _always(0)
+    tp: _Published = _always(0)
+
+    def check(self) -> tuple[str, str] | None:
+        problem = super().check() or (_quat_problem(self.q, "q") if self.ok else None)
+        if problem is None:
+            try:
+                keys.validate_name(self.n)
+            except InvalidName as exc:
+                return "n", str(exc)
+        return problem
+
+    @classmethod
+    def of(cls, name: str, pose: Pose) -> VisionBody:
+        """``pose`` as ``name``'s element of a frame."""
+        return cls(name, pose.t, pose.p, pose.q, pose.ok, pose.fn, pose.v, pose.w, pose.vok, pose.rc, pose.tp)
+
+    def pose(self) -> Pose:
+        """The :class:`Pose` the vehicle's own ``vision`` key carries for this frame."""
+        return Pose(self.t, self.p, self.q, self.ok, self.fn, self.v, self.w, self.vok, self.rc, self.tp)
+
+
+@payload
+class VisionFrame(Payload, frozen=True):
+    """Every vehicle's vision pose of one mocap frame, in one message (the transform decimating): what a
+    gateway serving several vehicles reads, woken once per frame instead of once per vehicle."""
+
+    SCHEMA = "VisionFrame"
+    DOC = "Every vehicle's vision pose (arena frame) of one mocap frame, one message per frame."
+    fn: Annotated[int, _int("Motive frame number (0 when not from Motive)", lo=0)]
+    b: Annotated[tuple[VisionBody, ...], Meta(max_length=256), _doc("The vehicles' poses, one each")]
+    tp: _Published = _always(0)
+
+    def check(self) -> tuple[str, str] | None:
+        return super().check() or _items_problem(self.b, "b")
 
 
 @payload
@@ -511,6 +576,7 @@ _KIND_TO_TYPE: dict[str, type[Payload]] = {
     "bodies": MocapPose,
     "frames": MocapFrame,
     "fleet": Fleet,
+    "visions": VisionFrame,
     "cmd": Command,
     "rec": Command,
     "clock": ClockOffset,

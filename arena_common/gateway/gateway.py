@@ -85,8 +85,10 @@ class Gateway:
         stats: Stats | None = None,
         log: logging.Logger | None = None,
         clock: ClockSync | None = None,
+        own_vision: bool = True,
     ) -> None:
         self.cfg = cfg
+        self.own_vision = own_vision  # False: a host process hands it its vision (:meth:`offer_vision`)
         self.clock = clock
         self.spec = v = cfg.vehicle(vehicle)
         self.name = v.name
@@ -235,10 +237,11 @@ class Gateway:
         bus = self.bus
         if bus is not None:
             # Each pose is sent from the Zenoh thread that received it: no hand-off, no thread to wake.
-            bus.subscribe(
-                keys.vision(self.name),
-                channel=Handler(self._on_vision, lambda e: self.health.failed("vision", e)),
-            )
+            if self.own_vision:
+                bus.subscribe(
+                    keys.vision(self.name),
+                    channel=Handler(self._on_vision, lambda e: self.health.failed("vision", e)),
+                )
             sp_sub = bus.subscribe(keys.setpoint(self.name), capacity=4, ring=True)
             self._thread(self.forwarder.run, "setpoints", sp_sub, self._stop, self.health.failed)
             bus.subscribe(
@@ -377,8 +380,18 @@ class Gateway:
             return
         self.stats.count("in")
         pose = typed(item, wire.Pose, self.health.vision_reject)
-        if pose is None:
+        if pose is not None:
+            self._send_vision(pose)
+
+    def offer_vision(self, pose: wire.Pose) -> None:
+        """Send ``pose`` to the autopilot as the vehicle's vision (what a host process serving several
+        vehicles calls with each one's pose of a mocap frame, instead of the vehicle's own key)."""
+        if self._stop.is_set():
             return
+        self.stats.count("in")
+        self._send_vision(pose)
+
+    def _send_vision(self, pose: wire.Pose) -> None:
         reason = self.vision.offer(pose)
         if reason is None:
             self.stats.latency((wire.now_ns() - pose.t + self.vision.correction()) * 1e-9)

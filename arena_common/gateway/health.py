@@ -115,9 +115,10 @@ class Health:
             self.stats.count("mavlink_garbage_bytes", garbage)
             self.stats.reject("mavlink: garbage")
 
-    def vision_reject(self, kind: str, detail: str) -> None:
-        """A sample on the vehicle's vision key that is no Pose."""
-        reason = "undecodable" if kind == "bad_payload" else "not a Pose"
+    def vision_reject(self, kind: str, detail: str, carries: str = "Pose") -> None:
+        """A sample on the vehicle's vision key that is no Pose (or on the frames' key that is no
+        ``carries``)."""
+        reason = "undecodable" if kind == "bad_payload" else f"not a {carries}"
         self.vision.refused(reason)
         self.stats.reject(f"vision: {reason}")
 

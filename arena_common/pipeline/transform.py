@@ -96,7 +96,14 @@ class PoseConverter:
 
 
 class Decimators:
-    """The vision filters the transform runs when it decimates (one per configured vehicle)."""
+    """The vision filters the transform runs when it decimates (one per configured vehicle).
+
+    A vehicle's vision goes out on its own ``vision`` key while anyone subscribes to it (a gateway of its
+    own), and every vehicle's vision of one mocap frame together as one
+    :class:`~arena_common.core.wire.VisionFrame` on ``arena/sys/vision`` while anyone subscribes to that
+    (a gateway serving several vehicles: one wake-up per frame, not one per vehicle); what nobody reads is
+    counted (``vision_unwatched``, ``vision_frames_unwatched``), not sent.
+    """
 
     def __init__(self, svc: Service, cfg: ArenaConfig) -> None:
         self.svc = svc
@@ -104,6 +111,8 @@ class Decimators:
         self.publishers = {
             name: svc.bus.stream_publisher(keys.vision(name), wire.Pose, Lane.VISION) for name in self.filters
         }
+        self.frames = svc.bus.stream_publisher(keys.VISIONS, wire.VisionFrame, Lane.VISION)
+        self._frame: list[wire.VisionBody] = []
 
     def offer(self, drone: str, pose: wire.Pose) -> None:
         """Publish ``pose`` as ``drone``'s vision if its filter passes it (unknown bodies have none)."""
@@ -113,8 +122,24 @@ class Decimators:
         d = filt.process(pose, pose.tp)
         account(self.svc, drone, pose, d, filt.rc, prefix="vision_")
         if d.vision is not None:
-            self.publishers[drone].put(d.vision)
             self.svc.stats.count("vision")
+            pub = self.publishers[drone]
+            if pub.matching:
+                pub.put(d.vision)
+            else:
+                self.svc.stats.count("vision_unwatched")
+            self._frame.append(wire.VisionBody.of(drone, d.vision))
+
+    def end_frame(self, fn: int) -> None:
+        """Publish the frame's vision (``fn``: its Motive frame number) as one message, if any passed."""
+        if not self._frame:
+            return
+        bodies, self._frame = tuple(self._frame), []
+        if self.frames.matching:
+            self.frames.put(wire.VisionFrame(fn, bodies, wire.now_ns()))
+            self.svc.stats.count("vision_frames")
+        else:
+            self.svc.stats.count("vision_frames_unwatched")
 
 
 class FleetPublisher:

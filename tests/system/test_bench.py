@@ -476,10 +476,23 @@ def test_the_fleet_point_is_judged_against_issue_27s_targets() -> None:
     per_vehicle = t["50 vehicles × 180 Hz as deployed (vision 50 Hz), downsampler per vehicle"]
     assert per_vehicle.met is False and "least 30.0 poses/s" in per_vehicle.measured  # a vehicle starved
     rss = t["idle per-vehicle process RSS at 50 vehicles"]
-    assert rss.met is False and rss.measured.startswith("largest 45.0 MB, total 2250 MB over 50 processes")
+    assert rss.met is False and rss.measured.startswith(
+        "45.0 MB per vehicle: largest process 45.0 MB, total 2250.0 MB over 50 processes"
+    )
     assert rss.measured.endswith("the whole arena 2340 MB (transform decimates)")
     cpu = t["idle per-vehicle process CPU at 50 vehicles (no mocap)"]
-    assert cpu.met is False and cpu.measured.startswith("mean 0.15 %, largest 0.30 %, total 7.7 %")
+    assert cpu.met is False and cpu.measured.startswith(
+        "0.30 % per vehicle: largest process 0.30 %, total 7.65 %"
+    )
+    hosted = {"gateways.0": {"role": "gateway", "pid": 2, "cpu": 8.0, "rss": 62 << 20}}
+    hosted_point = _point("arena-td-v50", 50, arena, p50=6.0, vision_rate=deployed, idle=hosted)
+    one_host = _targets(_result(250.0, [hosted_point]))  # one process serving the 50 vehicles' links
+    assert one_host["idle per-vehicle process RSS at 50 vehicles"].met is True
+    assert one_host["idle per-vehicle process RSS at 50 vehicles"].measured.startswith("1.2 MB per vehicle")
+    assert one_host["idle per-vehicle process CPU at 50 vehicles"].met is True
+    assert "0.16 % per vehicle: largest process 8.00 % serving 50 vehicles each" in (
+        one_host["idle per-vehicle process CPU at 50 vehicles"].measured
+    )
     up = t["start-up of 50 vehicles to vision from every vehicle"]
     assert up.met is True and up.measured.startswith("25.5 s: services alive 21.0 s")
     assert _targets(_result(250.0, points[1:]))["idle per-vehicle process RSS at 50 vehicles"].met is None

@@ -368,3 +368,52 @@ def test_decimating_transform_replaces_the_downsampler_processes(
     )
     with pytest.raises(ConfigError, match=r"vehicle_services.*the transform decimates"):
         load(bad)
+
+
+def test_decimating_each_frames_vision_goes_out_as_one_message_and_a_vehicles_own_key_only_when_read(
+    arena_config: Callable[..., ArenaConfig], bus_factory: Callable[[], Bus]
+) -> None:
+    """One VisionFrame per frame on arena/sys/vision (what a gateway serving several vehicles reads), the same
+    poses as the vehicles' own vision keys; a vehicle's own key nobody reads is counted, not sent."""
+    cfg = arena_config(2, DECIMATE_IN_TRANSFORM)
+    bus = bus_factory()
+    link = Link(bus)
+    frames = bus.subscribe(keys.VISIONS, capacity=10_000, ring=False)
+    vision1 = bus.subscribe(keys.vision("d1"), capacity=10_000, ring=False)  # nobody reads d2's own key
+    stats = bus.subscribe(keys.stats("test", "transform"), capacity=100, ring=False)
+    sent: list[int] = []
+    with service_thread(frame_transform.main, cfg, host="test"):
+        link.warm_up()
+
+        def counted() -> wire.Stats | None:
+            for _ in range(18):
+                fn = 1000 + len(sent)
+                d1 = mocap(fn, (0.001 * fn, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0))
+                link.pub.put(frame(("d1", d1), ("d2", d1.replace(id=2, p=(1.0, 2.0, 3.0)))))
+                sent.append(fn)
+            s = latest_stats(stats, "transform")
+            return (
+                s
+                if s and s.counts.get("vision_unwatched", 0) >= 10 and s.counts.get("vision_frames")
+                else None
+            )
+
+        snap = wait_for(counted, timeout=20, interval=0.1, what="d2's unread vision counted, frames sent")
+    items = frames.channel.drain()
+    got = [i.payload for i in items if isinstance(i.payload, wire.VisionFrame)]
+    assert got and len(got) == len(items)
+    own = {p.fn: p for p in (i.payload for i in vision1.channel.drain()) if isinstance(p, wire.Pose)}
+    both = [f for f in got if {b.n for b in f.b} == {"d1", "d2"}]
+    assert len(both) >= 0.8 * len(got), [[b.n for b in f.b] for f in got]  # one filter rate: mostly together
+    matched = 0
+    for f in got:
+        assert len({b.n for b in f.b}) == len(f.b)  # a vehicle once per frame
+        for b in f.b:
+            assert b.fn == f.fn and b.ok
+            if b.n == "d2":
+                assert b.p == pytest.approx((1.0, 3.0, -2.0))
+            elif b.fn in own:
+                assert b.pose() == own[b.fn]  # the very pose d1's own key carried
+                matched += 1
+    assert matched >= 0.8 * len(own), (matched, len(own))
+    assert snap.counts["vision_frames"] <= snap.counts["vision"]
