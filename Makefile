@@ -49,8 +49,8 @@ test-px4: $(STAMP)
 	$(BIN)/python -m pytest -q --durations=12 -m px4 tests/px4
 
 # PX4 SITL over a slow radio link, with and without the arena's compensation: RADIO_FLIGHTS flights per
-# link (direct, slow uncompensated, slow compensated; each ~80 s of PX4), their medians compared.
-RADIO_FLIGHTS ?= 5
+# link (direct, slow uncompensated, slow compensated; each ~50 s of PX4; ~25 min), their medians compared.
+RADIO_FLIGHTS ?= 10
 test-radio: $(STAMP)
 	ARENA_RADIO=1 ARENA_RADIO_FLIGHTS=$(RADIO_FLIGHTS) $(BIN)/python -m pytest -q -s -m px4 tests/px4/test_px4_slow_link.py
 

@@ -17,7 +17,8 @@ in one boot of PX4, and their medians are compared:
 - slow link, ``EKF2_EV_DELAY`` at what the check wants from the measured link.
 
 The table of medians and ranges is printed (docs/px4.md gives it), with whether the compensated hover and
-trajectory medians are within 20 % of the direct link's (the aim; not met for the hover: docs/px4.md).
+trajectory medians are within 20 % of the direct link's (the aim; met for the trajectory, for the hover in one of
+two runs of ten flights: docs/px4.md).
 Asserted: the gateway sees the link's delay and PX4 stamping on arrival, and the check wants a delay of
 the link's size; compensated, the estimate's lag stays near the direct flights' (the state comes back
 over the slow link too); uncompensated, the lag is measurably longer than compensated, or PX4 lost its
@@ -54,7 +55,8 @@ FIGURES = [
 DIRECT, UNCOMPENSATED, COMPENSATED = "direct", "slow, EKF2_EV_DELAY 0", "slow, compensated"
 # The estimate's lag behind the truth (arena state against SIH's truth, medians of each run's flights;
 # direct / slow, EKF2_EV_DELAY 0 / slow, compensated): 110/180/130, 100/170/130, 140/190/140 ms (one flight
-# each, 2026-11-28, before the arena's own lag was cut); 60/130/100 ms (five flights each, 2026-12-04).
+# each, 2026-11-28, before the arena's own lag was cut); 60/130/100 ms (five flights each, 2026-12-04);
+# 60/130/95 ms (ten flights each, 2026-12-04).
 # Compensated, the lag is the direct one plus the state's own way back over the link (30 ± 10 ms);
 # uncompensated, plus what EKF2_EV_DELAY misses (~40 ms) on top.
 NEAR_LAG_MS = 50.0  # compensated: at most this much longer than on the direct link (measured 0-40)
@@ -144,7 +146,9 @@ def test_px4_over_a_slow_link_with_and_without_compensation(px4_arena: PX4ArenaF
     lag = {name: median(rs, "estimate_lag_ms") for name, rs in runs.items() if rs}
     assert lag[COMPENSATED] - lag[DIRECT] <= NEAR_LAG_MS, lag
     # The aim (compensated, each of AIMED's medians within 20 % of the direct link's) is measured and printed,
-    # not asserted: it is not met for the hover (docs/px4.md, "PX4 SITL over a slow link").
+    # not asserted: one flight's hover spreads over 3.7-11.9 cm on the direct link itself, so a median of ten
+    # moves by more than 20 % from run to run (+14 % and +31 % in two runs; docs/px4.md, "PX4 SITL over a
+    # slow link").
     for f in AIMED:
         ratio = median(compensated, f) / median(direct, f) - 1
         print(
