@@ -404,6 +404,7 @@ class Bus:
         self._retired_lost: dict[str, int] = {}
         self._put_id = new_publisher_id()
         self._put_seq: dict[str, int] = {}
+        self._views: list[Bus] = []  # parts of this session that close alone (bus.view.BusView)
         self._lock = threading.Lock()
 
     # -- publishing -------------------------------------------------------------------------------
@@ -456,9 +457,11 @@ class Bus:
         their publishers' numbers; a key two subscriptions take counts once, the larger)."""
         with self._lock:
             subs = list(self._subscriptions)
+            views = list(self._views)
             out = dict(self._retired_lost)
-        for sub in subs:
-            for key, n in sub.gaps.lost().items():
+        counted = [sub.gaps.lost() for sub in subs] + [view.lost() for view in views]
+        for lost in counted:
+            for key, n in lost.items():
                 out[key] = max(out.get(key, 0), n)
         return out
 
@@ -550,8 +553,7 @@ class Bus:
             self._closables.append(obj)
         return obj
 
-    def close(self) -> None:
-        """Undeclare everything and close the session."""
+    def _undeclare_all(self) -> None:
         with self._lock:
             items, self._closables = self._closables, []
         for obj in reversed(items):
@@ -559,6 +561,10 @@ class Bus:
                 (obj.close if hasattr(obj, "close") else obj.undeclare)()
             except Exception:
                 pass
+
+    def close(self) -> None:
+        """Undeclare everything and close the session."""
+        self._undeclare_all()
         try:
             self.session.close()
         except Exception:

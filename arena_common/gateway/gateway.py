@@ -107,6 +107,7 @@ class Gateway:
             source_component=o.source_component,
             signing=self.signing,
             peer=v.mavlink_peer or None,
+            budget=o.link_budget,
         )
         self._event_pub = bus.command_publisher(keys.events(v.name), wire.Event) if bus is not None else None
         self.events = EventSink(self._event_pub.put if self._event_pub is not None else None, self.log)

@@ -98,7 +98,20 @@ class Health:
             "mavlink: undecodable": link.decode_errors,
             "mavlink: cannot pack": link.pack_errors,
             "mavlink: wrong source": link.wrong_source,
+            "mavlink: over budget": link.over_budget,
+            "mavlink: dropped by the system": link.kernel_drops(),
         }
+        flooded = link.over_budget + totals["mavlink: dropped by the system"]
+        if flooded > self._link_counts.get("flooded", 0):
+            self.events.emit(
+                "link",
+                f"the link is flooded: datagrams dropped beyond its budget of {link.budget}/s "
+                "(or the system's receive buffer); see 'mavlink: over budget' in its stats",
+                4,
+                every=10.0,
+                dropped=flooded - self._link_counts.get("flooded", 0),
+            )
+            self._link_counts["flooded"] = flooded
         if link.wrong_source > self._link_counts.get("mavlink: wrong source", 0):
             self.events.emit(
                 "link",

@@ -32,6 +32,7 @@ BOUNDS: dict[str, tuple[float, float]] = {
     "goto_speed": (0.01, 20.0),
     "goto_climb": (0.01, 10.0),
     "estimator_rate": (0.0, 100.0),
+    "link_budget": (0, 1_000_000),
 }
 
 
@@ -54,6 +55,9 @@ class GatewayOptions:
     goto_climb: float = 0.5  # m/s, vertical speed of the goto carrot (capped by arena.max_climb)
     check_at_start: bool = True  # read the arena parameters whenever the link comes up
     estimator_rate: float = 5.0  # Hz of ESTIMATOR_STATUS asked for (position validity); 0: not asked
+    # Datagrams per second a UDP link reads at most (0: no cap): a flood on one vehicle's link costs its
+    # reader little (PX4 sends a few hundred a second; the rest is dropped, counted 'mavlink: over budget').
+    link_budget: int = 5000
 
     def __post_init__(self) -> None:
         for name, (lo, hi) in BOUNDS.items():

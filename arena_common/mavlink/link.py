@@ -74,6 +74,7 @@ _SIGNED = 0x01
 _MAX_BUFFER = 1 << 16
 _WRONG_SOURCE_EVERY = 10.0  # s between two log lines about datagrams from an address not pinned
 _WRONG_SOURCE_ADDRESSES = 8  # distinct addresses named per log line (a flood may spoof many)
+BUDGET_WINDOW_S = 0.1  # a link's budget is spent in windows this long (a flood waits at most this)
 
 #: Message ids by name, for the messages the gateway handles or filters.
 MSG: dict[str, int] = {
@@ -210,6 +211,10 @@ class MavlinkLink:
     sent are signed and frames read are verified; ``on_reject(reason, frame)`` hears of each refused one
     (in the reading thread: keep it short).  ``peer`` (``"IP:PORT"``, ``udpin:`` links only) pins the
     autopilot's address: datagrams from elsewhere are dropped and counted in :attr:`wrong_source`.
+    ``budget`` (datagrams per second, 0: none) caps what a datagram link reads, so that a flood on it
+    costs its reader little: past it, within each :data:`BUDGET_WINDOW_S`, what was read is dropped
+    unparsed (:attr:`over_budget`) and the rest waits in the socket, where the system drops what its
+    buffer cannot hold (:meth:`kernel_drops`).
     """
 
     def __init__(
@@ -222,6 +227,7 @@ class MavlinkLink:
         signing: LinkSigning | None = None,
         on_reject: Callable[[str, Frame], None] | None = None,
         peer: str | None = None,
+        budget: int = 0,
     ) -> None:
         if not 1 <= int(system_id) <= 250:
             raise MavlinkLinkError(f"vehicle system id must be within 1..250, got {system_id}")
@@ -260,6 +266,12 @@ class MavlinkLink:
         self.send_errors = 0
         self.decode_errors = 0
         self.opened = 0
+        self.budget = max(0, int(budget))
+        self.datagrams_in = 0  # datagrams read, on a datagram link
+        self.over_budget = 0  # datagrams read past the budget, dropped unparsed
+        self._window_end = 0.0
+        self._window_left = 0
+        self._drops_closed = 0  # what the system dropped for the sockets of earlier openings
 
     # -- lifetime ------------------------------------------------------------------------------------
     def open(self) -> None:
@@ -275,8 +287,15 @@ class MavlinkLink:
         with self._lock:
             transport, self._transport = self._transport, None
         if transport is not None:
+            self._drops_closed += transport.kernel_drops() or 0
             with contextlib.suppress(OSError):
                 transport.close()
+
+    def kernel_drops(self) -> int:
+        """Datagrams the system dropped before this link read them (its receive buffer full), over every
+        opening; 0 where the system does not say."""
+        t = self._transport
+        return self._drops_closed + ((t.kernel_drops() or 0) if t is not None else 0)
 
     def reopen(self) -> bool:
         """Close and open again; False (and closed) when it cannot be opened right now."""
@@ -303,6 +322,15 @@ class MavlinkLink:
         if t is None:
             time.sleep(timeout)
             return []
+        budgeted = self.budget > 0 and not t.stream
+        if budgeted:
+            now = time.monotonic()
+            if now >= self._window_end:
+                self._window_end = now + BUDGET_WINDOW_S
+                self._window_left = max(1, round(self.budget * BUDGET_WINDOW_S))
+            elif self._window_left <= 0:  # over budget: what comes meanwhile waits in the socket
+                time.sleep(min(timeout, self._window_end - now))
+                return []
         fd = t.fileno()
         try:
             if fd is None:
@@ -316,6 +344,13 @@ class MavlinkLink:
             if self._transport is t:
                 time.sleep(min(timeout, 0.05))  # closed under us or broken; the owner re-opens it
             return []
+        if not t.stream:
+            self.datagrams_in += len(chunks)
+        if budgeted and len(chunks) > self._window_left:
+            self.over_budget += len(chunks) - self._window_left
+            chunks = chunks[: self._window_left]
+        if budgeted:
+            self._window_left -= len(chunks)
         out: list[Frame] = []
         sid = self.system_id
         signing = self.signing

@@ -12,6 +12,7 @@ A listening UDP transport (``udpin:``) sends to the address the link last accept
 from __future__ import annotations
 
 import ipaddress
+import os
 import re
 import socket
 from abc import ABC, abstractmethod
@@ -106,6 +107,11 @@ class _Transport(ABC):
         """Whether a chunk read from ``address`` may be used at all (False: not the pinned peer)."""
         return True
 
+    def kernel_drops(self) -> int | None:
+        """Datagrams the system dropped before anything read them (the receive buffer full); None where
+        the transport keeps no such count."""
+        return None
+
 
 class _Udp(_Transport):
     stream = False
@@ -154,6 +160,9 @@ class _Udp(_Transport):
 
     def source_allowed(self, address: Any) -> bool:
         return not self.pinned or address == self.peer
+
+    def kernel_drops(self) -> int | None:
+        return udp_drops(self.sock)
 
     def close(self) -> None:
         self.sock.close()
@@ -304,6 +313,21 @@ class _Pymavlink(_Transport):
 
     def close(self) -> None:
         self.conn.close()
+
+
+def udp_drops(sock: socket.socket) -> int | None:
+    """The datagrams Linux dropped for ``sock`` since it opened (its receive buffer full): the ``drops``
+    column of ``/proc/net/udp``; None where the system does not say."""
+    try:
+        inode = str(os.fstat(sock.fileno()).st_ino)
+        with open("/proc/net/udp") as table:
+            for line in table:
+                fields = line.split()
+                if len(fields) > 12 and fields[9] == inode:
+                    return int(fields[12])
+    except (OSError, ValueError):
+        pass
+    return None
 
 
 def open_transport(url: str, peer: str | None = None) -> _Transport:

@@ -106,7 +106,10 @@ def test_jittery_180_hz_to_50_hz_through_the_service(
             return s if s.counts.get("out") == len(poll()) else None
 
         snap = wait_for(settled, timeout=20, interval=0.05, what="the service to settle after the input")
-        assert snap.counts["in"] >= 420
+        # Every paced input was read, or lost on the bus or in the service's queue and counted so (a stream
+        # drops under congestion: a busy machine lost some of the 420 once, and the assert said 418 >= 420).
+        lost = snap.lost.get(keys.pose("d1"), 0) + snap.counts.get("dropped", 0)  # the bus's, the queue's
+        assert snap.counts["in"] + lost >= 420, (snap.counts, snap.lost)
 
     out = [g.payload for g in got]
     assert all(p is not None for p in out)
