@@ -124,18 +124,24 @@ def test_jittery_180_hz_to_50_hz_through_the_service(
         assert v.fn not in invalid and v.fn != outlier
     assert t_out[-1] <= last_in and last_in - t_out[-1] < PERIOD_NS  # output stopped with the input
 
-    # Rate and spacing on the clean second (by measurement time: what the autopilot's EKF sees).
+    # Rate and spacing on the clean second (by measurement time: what the autopilot's EKF sees).  A busy
+    # machine may starve the service: an input it never read is counted (``lost``: the bus's gaps, the
+    # queue's drops) and may move or take away the output nearest it, so the spacing is judged with that
+    # many exceptions and the rate with that many outputs fewer; with none counted, every check is exact.
+    def judge_rate(times_ns: list[int], what: str) -> None:
+        span = (times_ns[-1] - times_ns[0]) * 1e-9
+        rate = (len(times_ns) - 1) / span
+        assert rate <= 1.02 * OUT_HZ and len(times_ns) - 1 >= 0.98 * OUT_HZ * span - lost, (what, rate, lost)
+
     clean = [t for t in t_out if ts[warm] <= t <= ts[clean_end - 1]]
     intervals = np.diff(clean) / 1e6
-    rate = (len(clean) - 1) / ((clean[-1] - clean[0]) * 1e-9)
-    assert abs(rate - OUT_HZ) <= 0.02 * OUT_HZ, rate
-    assert len(clean) >= 45
-    assert np.abs(intervals - 1e3 / OUT_HZ).max() <= IN_NS / 1e6 + 2e3 * JITTER_S, intervals
-    assert statistics.pstdev(intervals) < 3.5
+    judge_rate(clean, "the clean second")
+    assert len(clean) >= 45 - lost
+    off = np.abs(intervals - 1e3 / OUT_HZ) > IN_NS / 1e6 + 2e3 * JITTER_S
+    assert off.sum() <= 2 * lost, (intervals, snap.counts, snap.lost)
+    assert lost or statistics.pstdev(intervals) < 3.5
     # Over the whole run up to the teleport too, the lost frames and the outlier included.
-    run = [t for t in t_out if t < ts[teleport]]
-    total = (len(run) - 1) / ((run[-1] - run[0]) * 1e-9)
-    assert abs(total - OUT_HZ) <= 0.02 * OUT_HZ, total
+    judge_rate([t for t in t_out if t < ts[teleport]], "the run up to the teleport")
 
     # Outliers dropped and counted; the new track bumped the reset counter once, velocities settle.
     assert snap.rejected.get("outlier_jump") == 1 + 10
