@@ -230,7 +230,7 @@ def test_the_gateways_of_several_vehicles_in_one_process(tmp_path: Path) -> None
     assert gateways == ["gateway-host.0"], point.per_service
     assert point.vision_rate["min"] > 0 and point.mismatched == 0 and point.duplicates == 0
     assert point.delivered > 0 and point.delivered + point.lost == point.expected
-    assert "gateways in 1 process (bench.gateway_host)" in point.notes
+    assert "gateways in 1 process (bench.gateway_host), vision per frame" in point.notes
 
 
 def test_floor_decimation_keeps_the_share_evenly() -> None:
