@@ -205,7 +205,8 @@ class GatewayHost:
                         SERVICE.name, cfg, bus=part, vehicle=v, host=self.host, stop=self.stop, clock=i == 0
                     )
                 )
-                clock = svc.clock if i == 0 else clock
+                if i == 0:
+                    clock = svc.clock  # the first vehicle's service measures the clock for them all
                 hosted = self.hosted[v] = HostedVehicle(self, svc, clock)
                 stack.callback(hosted.close)
                 self.gateways[v] = hosted.gateway

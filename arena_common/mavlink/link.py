@@ -346,11 +346,11 @@ class MavlinkLink:
             return []
         if not t.stream:
             self.datagrams_in += len(chunks)
-        if budgeted and len(chunks) > self._window_left:
-            self.over_budget += len(chunks) - self._window_left
-            chunks = chunks[: self._window_left]
         if budgeted:
-            self._window_left -= len(chunks)
+            kept = chunks[: self._window_left]
+            self.over_budget += len(chunks) - len(kept)
+            self._window_left -= len(kept)
+            chunks = kept
         out: list[Frame] = []
         sid = self.system_id
         signing = self.signing

@@ -112,7 +112,8 @@ class Decimators:
             name: svc.bus.stream_publisher(keys.vision(name), wire.Pose, Lane.VISION) for name in self.filters
         }
         self.frames = svc.bus.stream_publisher(keys.VISIONS, wire.VisionFrame, Lane.VISION)
-        self._frame: list[wire.VisionBody] = []
+        self._frame: list[wire.VisionBody] = []  # this frame's vision, while anyone reads the frames' key
+        self._unwatched = False  # this frame had vision that nobody reads as a frame
 
     def offer(self, drone: str, pose: wire.Pose) -> None:
         """Publish ``pose`` as ``drone``'s vision if its filter passes it (unknown bodies have none)."""
@@ -128,18 +129,20 @@ class Decimators:
                 pub.put(d.vision)
             else:
                 self.svc.stats.count("vision_unwatched")
-            self._frame.append(wire.VisionBody.of(drone, d.vision))
+            if self.frames.matching:
+                self._frame.append(wire.VisionBody.of(drone, d.vision))
+            else:
+                self._unwatched = True
 
     def end_frame(self, fn: int) -> None:
         """Publish the frame's vision (``fn``: its Motive frame number) as one message, if any passed."""
-        if not self._frame:
-            return
-        bodies, self._frame = tuple(self._frame), []
-        if self.frames.matching:
+        if self._frame:
+            bodies, self._frame = tuple(self._frame), []
             self.frames.put(wire.VisionFrame(fn, bodies, wire.now_ns()))
             self.svc.stats.count("vision_frames")
-        else:
+        elif self._unwatched:
             self.svc.stats.count("vision_frames_unwatched")
+        self._unwatched = False
 
 
 class FleetPublisher:
